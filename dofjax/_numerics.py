@@ -1,0 +1,58 @@
+"""NaN-free elementary maths: the double-`where` trick in one place (STYLE.md section 4).
+
+Every division, square root, reciprocal depth or normalisation whose argument can hit zero or
+infinity goes through these helpers, so that neither the value nor the gradient is ever NaN.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+
+def tiny(dtype) -> float:
+    """A safe threshold below which a denominator counts as zero for `dtype`."""
+    return float(jnp.finfo(dtype).tiny) * 16.0
+
+
+def safe_div(num: ArrayLike, den: ArrayLike, fill: float = 0.0) -> Array:
+    """`num / den`, with `fill` (and a zero gradient) where `|den|` is (almost) zero."""
+    num = jnp.asarray(num)
+    den = jnp.asarray(den)
+    ok = jnp.abs(den) > tiny(jnp.result_type(den, float))
+    return jnp.where(ok, num / jnp.where(ok, den, 1.0), fill)
+
+
+def safe_sqrt(x: ArrayLike) -> Array:
+    """`sqrt(max(x, 0))` whose gradient is 0 (not inf/NaN) at x <= 0."""
+    x = jnp.asarray(x)
+    ok = x > 0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, x, 1.0)), 0.0)
+
+
+def safe_norm(v: ArrayLike, axis: int = -1, keepdims: bool = False) -> Array:
+    """Euclidean norm with a zero (not NaN) gradient at the zero vector."""
+    v = jnp.asarray(v)
+    return safe_sqrt(jnp.sum(v * v, axis=axis, keepdims=keepdims))
+
+
+def normalize(v: ArrayLike, axis: int = -1) -> Array:
+    """`v / |v|`; the zero vector maps to zero."""
+    v = jnp.asarray(v)
+    return safe_div(v, safe_norm(v, axis=axis, keepdims=True))
+
+
+def inverse_depth(z: ArrayLike) -> Array:
+    """`1/z` for z-depth in (0, +inf]; exactly 0 at z = +inf, with a finite gradient everywhere.
+
+    DESIGN.md section 1: code works in inverse depth, which is 0 for the background.
+    """
+    z = jnp.asarray(z)
+    ok = jnp.isfinite(z) & (z > 0)
+    return jnp.where(ok, 1.0 / jnp.where(ok, z, 1.0), 0.0)
+
+
+def smooth_floor(r: ArrayLike, r0: float) -> Array:
+    """`sqrt(r^2 + r0^2)`: a smooth lower bound r0 on |r| (DESIGN.md section 3), C-infinity in r."""
+    r = jnp.asarray(r)
+    return jnp.sqrt(r * r + r0 * r0)

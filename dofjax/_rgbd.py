@@ -1,0 +1,51 @@
+"""What the ray caster hands to the defocus stage: sharp colour, z-depth, and optional extras.
+
+DESIGN.md sections 2 and 3. All images are linear float, rows top to bottom.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+from jaxtyping import Array, Float
+
+
+class Layers(eqx.Module):
+    """The first K surfaces along each pixel-centre ray (depth peeling), front to back.
+
+    Attributes:
+        rgb: (K, H, W, 3) shaded colour of the k-th surface (as `render` would show it if the
+            surfaces in front of it were removed).
+        depth: (K, H, W) z-depth of the k-th surface, +inf where the ray has fewer than k+1 hits.
+        alpha: (K, H, W) coverage of the pixel by the k-th surface, in [0, 1] (0 where no hit).
+    """
+
+    rgb: Float[Array, "k h w 3"]
+    depth: Float[Array, "k h w"]
+    alpha: Float[Array, "k h w"]
+
+
+class RGBD(eqx.Module):
+    """A sharp render: colour, z-depth, and what the defocus stage needs to be honest.
+
+    Attributes:
+        rgb: (H, W, 3) linear colour a pinhole camera sees (reflections included).
+        depth: (H, W) z-depth (distance along the optical axis) of the first surface at the pixel
+            centre, +inf for the background.
+        reflection: (H, W, 3) the part of `rgb` that arrived through mirrors (already weighted by
+            the mirror's reflectivity), or None for scenes without mirrors.
+        reflection_depth: (H, W) virtual z-depth of what the mirror shows: the length of the whole
+            reflected path divided by the primary ray's length per unit z (+inf where the reflected
+            ray escapes), or None.
+        layers: peeled layers from `render(..., layers=K)`, or None. Layer 0 is the first surface;
+            its colour includes `reflection`, exactly like `rgb`.
+    """
+
+    rgb: Float[Array, "h w 3"]
+    depth: Float[Array, "h w"]
+    reflection: Float[Array, "h w 3"] | None = None
+    reflection_depth: Float[Array, "h w"] | None = None
+    layers: Layers | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.depth.shape
