@@ -1,0 +1,139 @@
+"""Camera conventions (DESIGN.md section 1) and the circle of confusion."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dofjax
+from dofjax import Camera, coc_radius
+
+
+def test_look_at_basis_matches_mitsuba():
+    cam = Camera(64, 48, 60.0, 5.0, 0.1)
+    right, up, forward = cam.basis()
+    # A camera at the origin looking at +z with up +y shows world +x on the image's left.
+    np.testing.assert_allclose(right, [-1.0, 0.0, 0.0], atol=1e-7)
+    np.testing.assert_allclose(up, [0.0, 1.0, 0.0], atol=1e-7)
+    np.testing.assert_allclose(forward, [0.0, 0.0, 1.0], atol=1e-7)
+    dirs = cam.pixel_directions()
+    assert dirs.shape == (48, 64, 3)
+    assert dirs[0, 0, 0] > 0 and dirs[0, 0, 1] > 0  # top-left pixel looks to world +x and up
+    np.testing.assert_allclose(dirs[..., 2], 1.0)  # unit forward component: t is z-depth
+
+
+def test_pixel_scale_and_edge_ray_angle():
+    cam = Camera(100, 50, 90.0, 1.0, 0.0)
+    assert float(cam.pixel_scale) == pytest.approx(50.0)  # W / (2 tan 45deg)
+    # The left edge of the image (x offset 0 at column 0) is at tan-angle 1 for a 90 degree fov.
+    d = cam.pixel_directions(jnp.array([0.0, 0.5]))
+    assert float(d[25, 0, 0]) == pytest.approx(1.0)
+
+
+def test_pose_rotates_rays():
+    cam = Camera(8, 8, 40.0, 2.0, 0.0, eye=(1.0, 2.0, 3.0), target=(1.0, 2.0, -7.0))
+    right, up, forward = cam.basis()
+    np.testing.assert_allclose(forward, [0, 0, -1], atol=1e-7)
+    np.testing.assert_allclose(right, [1, 0, 0], atol=1e-7)  # forward x up = (0,0,-1) x (0,1,0)
+    np.testing.assert_allclose(jnp.cross(right, up), -forward, atol=1e-7)
+
+
+def test_coc_sign_and_background():
+    cam = Camera(200, 100, 60.0, 4.0, 0.05)
+    k = float(cam.pixel_scale)
+    c = coc_radius(jnp.array([2.0, 4.0, 8.0, jnp.inf]), cam)
+    np.testing.assert_allclose(
+        c, [0.05 * k * (0.5 - 0.25), 0.0, 0.05 * k * (0.125 - 0.25), -0.05 * k / 4.0], rtol=1e-6
+    )
+    assert bool(jnp.all(jnp.isfinite(c)))
+
+
+def test_coc_gradient_finite_at_background():
+    cam = Camera(64, 64, 50.0, 3.0, 0.02)
+    g = jax.grad(lambda a: coc_radius(jnp.array([jnp.inf, 1.0]), cam.replace(aperture_radius=a)).sum())(
+        0.02
+    )
+    assert np.isfinite(float(g))
+
+
+@pytest.mark.parametrize("z", [0.3, 0.9, 2.5, 10.0, 1e4])
+def test_seed_formulas_agree_after_unit_conversion(z):
+    """Demers' and Yu's CoC are the thin-lens law in other units (DESIGN.md section 1)."""
+    f, n, sensor, width, d = 0.05, 2.0, 0.036, 1000, 1.5
+    cam = Camera.from_photographic(width, 600, f, n, sensor, d)
+    ours = float(abs(coc_radius(jnp.asarray(z), cam)))
+    px_per_sensor_unit = width / sensor
+    # Demers: diameter on the sensor, with `a` the aperture diameter, lens-to-sensor at focus.
+    a = f / n
+    demers = abs(a * f * (z - d) / (z * (d - f)))
+    # We keep the field of view fixed (no focus breathing): the difference is exactly d / (d - f).
+    assert ours == pytest.approx(demers / 2 * px_per_sensor_unit * (d - f) / d, rel=1e-5)
+    # Yu 2004: diameter |a (s (1/f - 1/z) - 1)|, s the lens-to-screen distance, here for a lens focused
+    # at d (s = f d / (d - f)); same law, same d / (d - f) factor from the fixed field of view.
+    s = f * d / (d - f)
+    yu = abs(a * (s * (1 / f - 1 / z) - 1))
+    assert ours == pytest.approx(yu / 2 * px_per_sensor_unit * (d - f) / d, rel=1e-5)
+
+
+def test_from_photographic_values():
+    cam = Camera.from_photographic(640, 480, 0.05, 2.8, 0.036, 3.0)
+    assert float(cam.aperture_radius) == pytest.approx(0.05 / 5.6)
+    assert float(cam.fov) == pytest.approx(math.degrees(2 * math.atan(0.036 / 0.1)), rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(width=0), r"Camera\.width: must be an integer >= 1, got 0"),
+        (dict(height=2.5), r"Camera\.height"),
+        (dict(fov=180.0), r"Camera\.fov: must be in \(0, 180\) degrees, got 180\.0"),
+        (dict(fov=0.0), r"Camera\.fov"),
+        (dict(focus_distance=0.0), r"Camera\.focus_distance: must be > 0"),
+        (dict(focus_distance=-2.0), r"got -2\.0"),
+        (dict(focus_distance=float("nan")), r"Camera\.focus_distance"),
+        (dict(aperture_radius=-0.1), r"Camera\.aperture_radius: must be >= 0, got -0\.1"),
+        (dict(target=(0.0, 0.0, 0.0)), r"Camera\.target: must differ"),
+        (dict(up=(0.0, 0.0, 2.0)), r"Camera\.up: must not be parallel"),
+    ],
+)
+def test_camera_validation(kwargs, match):
+    base = dict(width=16, height=16, fov=45.0, focus_distance=2.0, aperture_radius=0.1)
+    base.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        Camera(**base)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(f_number=0.0), r"f_number must be > 0, got 0\.0"),
+        (dict(focal_length=-0.05), r"focal_length must be > 0"),
+        (dict(sensor_width=0.0), r"sensor_width must be > 0"),
+        (dict(focus_distance=0.04), r"focus_distance must exceed focal_length"),
+    ],
+)
+def test_photographic_validation(kwargs, match):
+    base = dict(width=16, height=16, focal_length=0.05, f_number=2.0, sensor_width=0.036,
+                focus_distance=2.0)
+    base.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        Camera.from_photographic(**base)
+
+
+def test_camera_values_do_not_recompile():
+    @eqx.filter_jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def f(cam, z):
+        return coc_radius(z, cam)
+
+    z = jnp.linspace(0.5, 5.0, 7)
+    for d, a in [(1.0, 0.1), (2.0, 0.3), (9.0, 0.0)]:
+        f(Camera(32, 32, 50.0, d, a), z)
+    f(Camera(32, 32, 70.0, 3.0, 0.2, eye=(1.0, 0.0, 0.0), target=(1.0, 0.0, 5.0)), z)
+
+
+def test_public_surface():
+    assert dofjax.Camera is Camera
