@@ -5,5 +5,15 @@ and recover focus distance and aperture from a blurred image.
 """
 
 from ._camera import Camera as Camera, coc_radius as coc_radius
+from ._io import (
+    read_exr as read_exr,
+    read_exr_layers as read_exr_layers,
+    read_exr_metadata as read_exr_metadata,
+    read_image as read_image,
+    read_rgbd as read_rgbd,
+    write_exr as write_exr,
+    write_png as write_png,
+    write_rgbd as write_rgbd,
+)
 
 __version__ = "0.1.0"

@@ -1,0 +1,296 @@
+"""The `dofjax` command line: thin wrappers that parse arguments, call the library, print or save.
+
+    dofjax render SCENE.json [--focus D] [--aperture A] [--width W] [--height H] [--fov DEG]
+                             [--eye X Y Z] [--target X Y Z] [--up X Y Z] [--spp N] [--layers K]
+                             -o OUT.exr [--png OUT.png] [--exposure EV]
+    dofjax info FILE.exr
+
+`render` takes the camera from the scene file's "camera" section (`dofjax.load_camera`); every flag
+overrides one field of it. It writes RGB + Z (+ the mirror layer `reflection.*`,
+`reflection_depth.Z` and peeled layers `layer<k>.*` when present, see `dofjax.write_rgbd`) with the
+camera and render parameters as `dofjax:<name>` metadata, and optionally an sRGB PNG preview.
+`info` prints an EXR's resolution, channels, depth and colour ranges and its dofjax metadata.
+
+Errors a user can fix (ValueError, FileNotFoundError, OSError) are printed as
+`dofjax: error: <message>` on stderr with exit status 2, without a traceback; argparse usage errors
+also exit with status 2.
+
+Adding a subcommand (e.g. `defocus`): write `_configure_<name>(parser)` that adds its arguments and
+`_run_<name>(args) -> int` that calls the library and prints or saves, then append
+`Subcommand("<name>", "<one-line help>", _configure_<name>, _run_<name>)` to `SUBCOMMANDS`. New
+options of an existing subcommand (e.g. `render --reference` for the lens-sampling reference) go in
+its `_configure_*` and `_run_*` functions. Keep maths out of this file: it belongs in the library.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+
+class Subcommand(NamedTuple):
+    """One `dofjax <name>` subcommand: `configure(parser)` adds arguments, `run(args)` returns the
+    exit status."""
+
+    name: str
+    help: str
+    configure: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+# ---------------------------------------------------------------------------------------------
+# dofjax render
+
+
+def _configure_render(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scene", help="scene file (JSON, see docs/scene_format.md)")
+    p.add_argument("-o", "--output", required=True, help="output OpenEXR file (.exr)")
+    p.add_argument("--png", help="also write an 8-bit sRGB preview PNG here")
+    p.add_argument("--exposure", type=float, default=0.0, help="PNG preview exposure, stops")
+    cam = p.add_argument_group(
+        "camera (override the scene file's camera section; required if it has none)"
+    )
+    cam.add_argument("--focus", type=float, metavar="D", help="focus distance, world units")
+    cam.add_argument(
+        "--aperture", type=float, metavar="A", help="aperture (lens) radius, world units"
+    )
+    cam.add_argument("--width", type=int, metavar="W", help="image width, pixels")
+    cam.add_argument("--height", type=int, metavar="H", help="image height, pixels")
+    cam.add_argument("--fov", type=float, metavar="DEG", help="horizontal field of view, degrees")
+    cam.add_argument("--eye", type=float, nargs=3, metavar=("X", "Y", "Z"), help="camera position")
+    cam.add_argument(
+        "--target", type=float, nargs=3, metavar=("X", "Y", "Z"), help="point looked at"
+    )
+    cam.add_argument("--up", type=float, nargs=3, metavar=("X", "Y", "Z"), help="up direction")
+    p.add_argument("--spp", type=int, default=1, help="colour samples per pixel (default 1)")
+    p.add_argument(
+        "--layers", type=int, metavar="K", help="also write K depth-peeled layers (layer<k>.*)"
+    )
+
+
+_CAMERA_FLAGS = {
+    "width": "width",
+    "height": "height",
+    "fov": "fov",
+    "focus": "focus_distance",
+    "aperture": "aperture_radius",
+    "eye": "eye",
+    "target": "target",
+    "up": "up",
+}
+
+
+def _camera_from_args(args: argparse.Namespace):
+    """The scene file's camera with the command-line overrides applied (validated by Camera)."""
+    import dofjax
+
+    base = dofjax.load_camera(args.scene)
+    fields: dict = {}
+    if base is not None:
+        fields = {
+            "width": base.width,
+            "height": base.height,
+            "fov": float(base.fov),
+            "focus_distance": float(base.focus_distance),
+            "aperture_radius": float(base.aperture_radius),
+            "eye": np.asarray(base.eye).tolist(),
+            "target": np.asarray(base.target).tolist(),
+            "up": np.asarray(base.up).tolist(),
+        }
+    for flag, field in _CAMERA_FLAGS.items():
+        value = getattr(args, flag)
+        if value is not None:
+            fields[field] = value
+    required = {"width": "--width", "height": "--height", "fov": "--fov",
+                "focus_distance": "--focus", "aperture_radius": "--aperture"}
+    missing = [flag for field, flag in required.items() if field not in fields]
+    if missing:
+        raise ValueError(
+            f"{args.scene}: the scene file has no camera section; give {', '.join(missing)}"
+        )
+    return dofjax.Camera(**fields)
+
+
+def _render_metadata(args: argparse.Namespace, camera) -> dict:
+    import dofjax
+
+    return {
+        "focus_distance": float(camera.focus_distance),
+        "aperture_radius": float(camera.aperture_radius),
+        "fov": float(camera.fov),
+        "width": camera.width,
+        "height": camera.height,
+        "eye": np.asarray(camera.eye).tolist(),
+        "target": np.asarray(camera.target).tolist(),
+        "up": np.asarray(camera.up).tolist(),
+        "pixel_scale": float(camera.pixel_scale),
+        "scene": str(args.scene),
+        "spp": args.spp,
+        "layers": args.layers,
+        "generator": "dofjax render",
+        "version": dofjax.__version__,
+    }
+
+
+def _run_render(args: argparse.Namespace) -> int:
+    import dofjax
+
+    if args.spp < 1:
+        raise ValueError(f"--spp: must be >= 1, got {args.spp}")
+    if args.layers is not None and args.layers < 1:
+        raise ValueError(f"--layers: must be >= 1, got {args.layers}")
+    # Check output names before the (slow) render so a typo costs nothing.
+    for flag, name, ext in (("-o", args.output, ".exr"), ("--png", args.png, ".png")):
+        if name is not None and not name.lower().endswith(ext):
+            raise ValueError(f"{flag}: {name}: the file name must end in {ext}")
+    scene = dofjax.load_scene(args.scene)
+    camera = _camera_from_args(args)
+    start = time.perf_counter()
+    rgbd = dofjax.render(scene, camera, spp=args.spp, layers=args.layers)
+    rgbd = _to_numpy(rgbd)  # blocks until the result is ready, so the time below is honest
+    seconds = time.perf_counter() - start
+    dofjax.write_rgbd(args.output, rgbd, _render_metadata(args, camera))
+    if args.png:
+        dofjax.write_png(args.png, rgbd.rgb, exposure=args.exposure)
+    extras = []
+    if rgbd.reflection is not None:
+        extras.append("reflection")
+    if rgbd.layers is not None:
+        extras.append(f"{rgbd.layers.depth.shape[0]} layers")
+    print(
+        f"wrote {args.output}{' and ' + args.png if args.png else ''}: "
+        f"{camera.width}x{camera.height}, spp {args.spp}"
+        f"{', ' + ', '.join(extras) if extras else ''}, focus {float(camera.focus_distance):g}, "
+        f"aperture {float(camera.aperture_radius):g}, render {seconds:.2f} s (incl. compile)"
+    )
+    return 0
+
+
+def _to_numpy(tree):
+    import jax
+
+    return jax.tree_util.tree_map(np.asarray, tree)
+
+
+# ---------------------------------------------------------------------------------------------
+# dofjax info
+
+
+def _configure_info(p: argparse.ArgumentParser) -> None:
+    p.add_argument("file", help="an OpenEXR file (e.g. written by `dofjax render`)")
+
+
+def _range(a: np.ndarray) -> str:
+    finite = a[np.isfinite(a)]
+    if finite.size == 0:
+        return "no finite values"
+    return f"[{float(finite.min()):.6g}, {float(finite.max()):.6g}]"
+
+
+def _format_value(value) -> str:
+    return repr(value) if isinstance(value, str) else str(value)
+
+
+def info_lines(path: str) -> list[str]:
+    """The report `dofjax info` prints, one string per line (no validation of pixel values:
+    NaN and inf are counted, not refused)."""
+    from ._io import _channels, _decode_metadata, _group_layers
+
+    spec, chans = _channels(path)
+    names = list(chans)
+    lines = [
+        f"file: {path}",
+        f"resolution: {spec.width} x {spec.height}",
+        f"channels ({len(names)}): {' '.join(names)}",
+    ]
+    if all(c in chans for c in "RGB"):
+        rgb = np.stack([chans[c] for c in "RGB"], axis=-1)
+        per = ", ".join(f"{c} {_range(rgb[..., i])}" for i, c in enumerate("RGB"))
+        lines.append(f"colour: {_range(rgb)} ({per}), mean {float(np.nanmean(rgb)):.6g}")
+        bad = int((~np.isfinite(rgb)).sum())
+        if bad:
+            lines.append(f"colour: WARNING {bad} NaN/inf value(s)")
+    else:
+        lines.append("colour: no R, G, B channels")
+    if "Z" in chans:
+        lines.append("depth: " + _depth_summary(chans["Z"]))
+    else:
+        lines.append("depth: no Z channel")
+    if "A" in chans:
+        lines.append(f"alpha: {_range(chans['A'])}")
+    for name, arr in _group_layers(chans).items():
+        what = _depth_summary(arr) if arr.ndim == 2 else f"{arr.shape[2]} channels, {_range(arr)}"
+        lines.append(f"layer {name}: {what}")
+    metadata = _decode_metadata(spec)
+    lines.append(f"metadata ({len(metadata)}):" if metadata else "metadata: none")
+    for key in sorted(metadata):
+        lines.append(f"  dofjax:{key} = {_format_value(metadata[key])}")
+    return lines
+
+
+def _depth_summary(z: np.ndarray) -> str:
+    n = z.size
+    background = int(np.isposinf(z).sum())
+    nan = int(np.isnan(z).sum())
+    text = f"finite {_range(z)}, background (+inf) {background / n:.1%}"
+    if nan:
+        text += f", WARNING {nan} NaN"
+    return text
+
+
+def _run_info(args: argparse.Namespace) -> int:
+    for line in info_lines(args.file):
+        print(line)
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Registry and entry point.
+
+SUBCOMMANDS: list[Subcommand] = [
+    Subcommand("render", "ray cast a scene file to EXR (RGB + Z + metadata)", _configure_render,
+               _run_render),
+    Subcommand("info", "describe an EXR file: size, channels, ranges, metadata", _configure_info,
+               _run_info),
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The `dofjax` argument parser with one subparser per entry of `SUBCOMMANDS`."""
+    import dofjax
+
+    parser = argparse.ArgumentParser(
+        prog="dofjax", description="Differentiable depth-of-field rendering in JAX."
+    )
+    parser.add_argument("--version", action="version", version=f"dofjax {dofjax.__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for cmd in SUBCOMMANDS:
+        p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)
+        cmd.configure(p)
+        p.set_defaults(_run=cmd.run)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run `dofjax` with `argv` (default: `sys.argv[1:]`); return the exit status.
+
+    User errors (ValueError, FileNotFoundError, OSError) print `dofjax: error: <message>` to stderr
+    and return 2.
+    """
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args._run(args) or 0)
+    except (ValueError, OSError) as exc:  # FileNotFoundError is an OSError
+        message = str(exc) or type(exc).__name__
+        print(f"dofjax: error: {message}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
