@@ -15,5 +15,26 @@ from ._io import (
     write_png as write_png,
     write_rgbd as write_rgbd,
 )
+from ._scene import (
+    Boxes as Boxes,
+    DirectionalLights as DirectionalLights,
+    Materials as Materials,
+    Planes as Planes,
+    PointLights as PointLights,
+    Quads as Quads,
+    Scene as Scene,
+    Spheres as Spheres,
+    Triangles as Triangles,
+)
+from ._scenefile import (
+    SceneError as SceneError,
+    load_camera as load_camera,
+    load_obj as load_obj,
+    load_scene as load_scene,
+    save_scene as save_scene,
+    scene_from_dict as scene_from_dict,
+    scene_to_dict as scene_to_dict,
+)
+from ._textures import load_texture as load_texture
 
 __version__ = "0.1.0"
