@@ -109,7 +109,8 @@ def _as_float_array(path: str, name: str, value: Any) -> np.ndarray:
         raise ValueError(
             f"{path}: {name} must be a floating-point array (linear values), got dtype {arr.dtype}"
         )
-    out = arr.astype(np.float32)
+    with np.errstate(over="ignore"):  # overflow is reported below, with the file name
+        out = arr.astype(np.float32)
     if arr.dtype != np.float32:
         # A float64 value beyond float32's range would silently become inf.
         overflow = np.isfinite(arr) & ~np.isfinite(out)
