@@ -1,8 +1,9 @@
-"""Images on disk: OpenEXR data files and sRGB PNG previews, through OpenImageIO (DESIGN.md section 2).
+"""Images on disk: OpenEXR data and sRGB PNG previews through OpenImageIO (DESIGN.md section 2).
 
 EXR layout written by `write_exr`:
-- channels `R, G, B` (linear colour), optional `A` (coverage in [0, 1]) and `Z` (z-depth, world units,
-  `+inf` for the background), all float32, ZIP compression (lossless: a round trip is bitwise exact);
+- channels `R, G, B` (linear colour), optional `A` (coverage in [0, 1]) and `Z` (z-depth, world
+  units, `+inf` for the background), all float32, ZIP compression (lossless: a round trip is
+  bitwise exact);
 - extra named layers as `<name>.R, <name>.G, <name>.B` (an (H, W, 3) array), `<name>.R ... <name>.A`
   (an (H, W, 4) array) or `<name>.Z` (an (H, W) depth-like array), e.g. `reflection.R` and
   `reflection_depth.Z` for the mirror layer of an `RGBD`;
@@ -13,14 +14,15 @@ binding cannot write doubles, so some values travel as JSON text):
 - `int` within int32: an `int` attribute;
 - `float` exactly representable in float32 (e.g. 2.5, 0.25, +inf): a `float` attribute;
 - any other `float` (e.g. 0.1), larger ints, `bool`, `None`, lists, tuples and (nested) dicts with
-  string keys: a string attribute `json:<JSON text>` (Python's `repr` of a float round-trips exactly;
-  `Infinity`/`NaN` are allowed);
+  string keys: a string attribute `json:<JSON text>` (Python's `repr` of a float round-trips
+  exactly; `Infinity`/`NaN` are allowed);
 - `str`: the string itself, unless it is empty, starts with `json:` or contains a NUL character, in
   which case it is JSON-encoded as above.
 `read_exr` decodes all of these, so `read_exr(write_exr(..., metadata=m))` gives back `m` exactly,
 except that tuples come back as lists (JSON has one sequence type). NumPy/JAX scalars and arrays are
 accepted on write and stored as Python numbers and (nested) lists. Names are ASCII identifiers that
-may also contain `.` and `-` (no `:`), at most 200 characters; pass them without the `dofjax:` prefix.
+may also contain `.` and `-` (no `:`), at most 200 characters; pass them without the `dofjax:`
+prefix.
 
 PNG previews (`write_png`) are 8-bit sRGB for people only: never read them back as data.
 `read_image` reads any image OpenImageIO can, e.g. a target photograph, as linear float32 RGB.
@@ -60,7 +62,7 @@ _SUFFIXES = {2: ("Z",), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
 
 
 def _oiio():
-    # Imported lazily so that `import dofjax` stays fast and works for code that never touches files.
+    # Imported lazily so that `import dofjax` stays fast for code that never touches files.
     import OpenImageIO as oiio
 
     return oiio
@@ -344,7 +346,8 @@ def write_exr(
     """Write linear colour (+ z-depth, alpha, extra layers, metadata) to an OpenEXR file.
 
     Args:
-        path: output file, must end in `.exr`; its directory must exist; an existing file is replaced.
+        path: output file, must end in `.exr`; its directory must exist; an existing file is
+            replaced.
         rgb: (H, W, 3) linear colour, any float dtype (NumPy or JAX); stored as float32. Must be
             finite.
         depth: optional (H, W) z-depth in world units along the optical axis, in (0, +inf]
