@@ -1,0 +1,568 @@
+"""Sample tasks, the run loop (resume, workers, progress) and the dry-run plan.
+
+A data set is ``count`` independent samples. Sample ``i`` of seed ``S`` is a pure function of
+(S, i, config): every random draw comes from `sample_rng(S, i, stream)`, so samples can be made in
+any order, by any worker, and twice over with the same bytes. `generate_sample` is that function;
+it is importable (module-level, picklable arguments) so any executor can run it: `run` uses a
+process pool on one machine, a cluster scheduler could call it with the same arguments.
+
+Layout of an output directory::
+
+    generator.json                     seed + validated config (a resume must match it)
+    manifest.jsonl                     one JSON line per sample, in index order
+    samples/0000/000000.scene.json     the scene (dofjax scene-file format): the ground truth
+    samples/0000/000000.sharp.exr      sharp RGB + Z (+ mirror and peeled layers), write_rgbd
+    samples/0000/000000.target.exr     the noisy target (+ the noise-free one as layer "clean")
+    samples/0000/000000.json           the sample's record (= its manifest line); written last
+
+Every file is written to a temporary name and renamed into place, and the record last, so a sample
+is finished exactly when its record exists and its files have the recorded sizes. A re-run skips
+finished samples and redoes anything else (a half-written sample is overwritten), then rebuilds
+the manifest from the records, which also repairs a damaged or truncated manifest.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from ._config import describe
+from ._kinds import KIND_FUNCTIONS, choose, make_scene
+from ._noise import apply_noise, draw_noise_params, sample_rng, sample_uint32
+
+FORMAT_VERSION = 1
+FILE_ROLES = ("scene", "sharp", "target")
+
+
+def sample_stem(index: int) -> str:
+    """The path, relative to the output directory, of sample `index` without its suffix."""
+    return f"samples/{index // 1000:04d}/{index:06d}"
+
+
+def sample_files(index: int) -> dict[str, str]:
+    """Relative paths of a sample's files by role (plus ``record``)."""
+    stem = sample_stem(index)
+    return {
+        "scene": stem + ".scene.json",
+        "sharp": stem + ".sharp.exr",
+        "target": stem + ".target.exr",
+        "record": stem + ".json",
+    }
+
+
+# ------------------------------------------------------------------------------------------------
+# What a sample will be (cheap: no rendering), shared by the dry run and the generator.
+
+
+def plan_sample(cfg: Mapping, seed: int, index: int) -> dict:
+    """The kind and noise entry of sample `index` (drawn from its own ``kind`` stream)."""
+    rng = sample_rng(seed, index, "kind")
+    kind = choose(rng, cfg["kinds"])
+    weights = {str(i): e["weight"] for i, e in enumerate(cfg["noise"])}
+    noise_entry = int(choose(rng, weights))
+    return {"kind": kind, "noise_entry": noise_entry}
+
+
+def _f32(x) -> float:
+    """Round to float32 and back: the camera stores float32 values (unless float64 is enabled),
+    and the recorded truth must be exactly the value the camera used."""
+    return float(np.float32(x))
+
+
+def _loguniform(rng: np.random.Generator, value) -> float:
+    if isinstance(value, list):
+        lo, hi = value
+        return float(np.exp(rng.uniform(math.log(lo), math.log(hi)))) if hi > lo else float(lo)
+    return float(value)
+
+
+def _uniform(rng: np.random.Generator, value) -> float:
+    if isinstance(value, list):
+        return float(rng.uniform(value[0], value[1]))
+    return float(value)
+
+
+def draw_lens(cfg: Mapping, rng: np.random.Generator) -> dict:
+    """Field of view (and photographic focal length / sensor width) of a sample's camera.
+
+    Drawn before the scene is rendered: the sharp render needs the field of view, focus and
+    aperture are drawn afterwards from the rendered depth range (`draw_focus_aperture`).
+    """
+    cam = cfg["camera"]
+    if cam["model"] == "thin_lens":
+        return {"fov": _f32(_uniform(rng, cam["fov"]))}
+    f = _loguniform(rng, cam["focal_length"])
+    s = _loguniform(rng, cam["sensor_width"])
+    fov = math.degrees(2.0 * math.atan(s / (2.0 * f)))
+    return {"fov": _f32(fov), "focal_length": f, "sensor_width": s}
+
+
+def draw_focus_aperture(cfg: Mapping, rng: np.random.Generator, lens: Mapping,
+                        z_near: float, z_far: float, width: int) -> dict:
+    """Focus distance and aperture radius for a scene whose visible depths span [z_near, z_far].
+
+    Focus: log-uniform in ``camera.focus_distance``; with ``focus_in_scene`` that range is first
+    narrowed to the scene's depth span widened by a factor 1.5 each way (so a scene of one depth
+    is not always exactly in focus). Aperture: log-uniform in ``aperture_radius`` (or, photographic,
+    the f-number log-uniform in ``f_number`` and A = f / (2N)); with ``max_coc_px`` the upper end
+    of the aperture range is lowered so that no visible depth blurs by more than that many pixels
+    (|c| = A k |1/z - 1/d|, DESIGN.md section 1). Returns the drawn values (float32-exact) and
+    whether the cap was active.
+    """
+    cam = cfg["camera"]
+    f_lo, f_hi = (cam["focus_distance"] if isinstance(cam["focus_distance"], list)
+                  else [cam["focus_distance"]] * 2)
+    if cam["focus_in_scene"]:
+        lo, hi = max(f_lo, z_near / 1.5), min(f_hi, z_far * 1.5)
+        if lo <= hi:
+            f_lo, f_hi = lo, hi
+    if cam["model"] == "photographic":
+        f_lo = max(f_lo, lens["focal_length"] * 1.01)
+        f_hi = max(f_hi, f_lo)
+    d = _f32(_loguniform(rng, [f_lo, f_hi]))
+    k = width / (2.0 * math.tan(math.radians(lens["fov"]) / 2.0))
+    spread = max(abs(1.0 / z_near - 1.0 / d), abs(1.0 / z_far - 1.0 / d), 1e-12)
+    a_cap = math.inf if cam["max_coc_px"] is None else cam["max_coc_px"] / (k * spread)
+    out: dict = {"focus_distance": d}
+    if cam["model"] == "thin_lens":
+        a_lo, a_hi = (cam["aperture_radius"] if isinstance(cam["aperture_radius"], list)
+                      else [cam["aperture_radius"]] * 2)
+        capped = a_cap < a_hi
+        a_hi = min(a_hi, a_cap)
+        a_lo = min(a_lo, a_hi)
+        out["aperture_radius"] = _f32(_loguniform(rng, [a_lo, a_hi]))
+    else:
+        f = lens["focal_length"]
+        n_lo, n_hi = (cam["f_number"] if isinstance(cam["f_number"], list)
+                      else [cam["f_number"]] * 2)
+        n_cap = f / (2.0 * a_cap)  # the smallest f-number that keeps |c| <= max_coc_px
+        capped = n_cap > n_lo
+        n_lo = max(n_lo, n_cap)
+        n_hi = max(n_hi, n_lo)
+        n = _loguniform(rng, [n_lo, n_hi])
+        out["f_number"] = n
+        out["aperture_radius"] = _f32(f / (2.0 * n))
+    out["aperture_capped"] = bool(capped)
+    out["max_coc_px"] = float(out["aperture_radius"] * k * spread)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Writing files atomically.
+
+
+def _tmp_name(path: str) -> str:
+    base, ext = os.path.splitext(path)
+    # OpenImageIO picks the format from the extension, so it must stay last.
+    return f"{base}.tmp{os.getpid()}{ext}"
+
+
+def _write_text_atomic(path: str, text: str) -> None:
+    tmp = _tmp_name(path)
+    with open(tmp, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def _write_exr_atomic(path: str, writer, *args, **kwargs) -> None:
+    tmp = _tmp_name(path)
+    writer(tmp, *args, **kwargs)
+    os.replace(tmp, path)
+
+
+def _json_dumps(obj) -> str:
+    return json.dumps(obj, sort_keys=True, allow_nan=False)
+
+
+# ------------------------------------------------------------------------------------------------
+# One sample.
+
+
+def _depth_span(rgbd) -> tuple[float, float]:
+    """Nearest and farthest finite z-depth the camera sees, mirror images included."""
+    maps = [np.asarray(rgbd.depth)]
+    if rgbd.reflection_depth is not None:
+        maps.append(np.asarray(rgbd.reflection_depth))
+    if rgbd.layers is not None:
+        maps.append(np.asarray(rgbd.layers.depth))
+    finite = np.concatenate([m[np.isfinite(m)].ravel() for m in maps])
+    if finite.size == 0:
+        raise RuntimeError("the sharp render has no finite depth (the scene is empty)")
+    return float(finite.min()), float(finite.max())
+
+
+def build_sample(cfg: Mapping, seed: int, index: int) -> dict:
+    """Render sample `index` in memory (no files): scene dict, cameras, sharp RGBD, target, truth.
+
+    Returns:
+        A dict with ``scene`` (the JSON-able scene dict), ``camera`` (the dofjax.Camera with focus
+        and aperture), ``rgbd`` (the sharp `RGBD`), ``clean`` (noise-free target, float32 numpy),
+        ``target`` (noisy target), ``truth`` (what goes into the metadata and the manifest).
+    """
+    import dofjax
+    import jax
+
+    width, height = cfg["size"]
+    plan = plan_sample(cfg, seed, index)
+    kind = plan["kind"]
+    # Focus and aperture are drawn from the same camera stream after the render (they depend on
+    # the rendered depth span), the field of view before it.
+    cam_rng = sample_rng(seed, index, "camera")
+    lens = draw_lens(cfg, cam_rng)
+    ks = make_scene(kind, sample_rng(seed, index, "scene"), lens["fov"], height / width,
+                    cfg["scene"])
+    scene = dofjax.scene_from_dict(ks.scene)
+    target_cfg = cfg["target"]
+    method = target_cfg["method"]
+    pinhole = dofjax.Camera(width=width, height=height, fov=lens["fov"], focus_distance=1.0,
+                            aperture_radius=0.0)
+    layers = target_cfg["layers"] if method == "defocus" else None
+    rgbd = dofjax.render(scene, pinhole, spp=target_cfg["sharp_spp"], layers=layers)
+    z_near, z_far = _depth_span(rgbd)
+    fa = draw_focus_aperture(cfg, cam_rng, lens, z_near, z_far, width)
+    camera = pinhole.replace(focus_distance=fa["focus_distance"],
+                             aperture_radius=fa["aperture_radius"])
+    if method == "defocus":
+        clean = dofjax.defocus(rgbd, camera)
+        spp = target_cfg["sharp_spp"]
+    else:
+        key = jax.random.key(sample_uint32(seed, index, "reference"))
+        spp = target_cfg["reference_spp"]
+        clean = dofjax.render_reference(scene, camera, spp=spp, key=key)
+    clean = np.asarray(clean, dtype=np.float32)
+    noise_rng = sample_rng(seed, index, "noise")
+    noise = draw_noise_params(cfg["noise"][plan["noise_entry"]], noise_rng)
+    target = apply_noise(clean, noise, noise_rng)
+
+    truth = {
+        "focus_distance": float(camera.focus_distance),
+        "aperture_radius": float(camera.aperture_radius),
+        "fov": float(camera.fov),
+        "width": width,
+        "height": height,
+        "eye": [float(v) for v in np.asarray(camera.eye)],
+        "target": [float(v) for v in np.asarray(camera.target)],
+        "up": [float(v) for v in np.asarray(camera.up)],
+        "camera_model": cfg["camera"]["model"],
+        "depth_min": z_near,
+        "depth_max": z_far,
+        "max_coc_px": fa["max_coc_px"],
+        "aperture_capped": fa["aperture_capped"],
+    }
+    if cfg["camera"]["model"] == "photographic":
+        truth.update(focal_length=lens["focal_length"], sensor_width=lens["sensor_width"],
+                     f_number=fa["f_number"])
+    return {
+        "kind": kind,
+        "identifiable": ks.identifiable,
+        "scene": ks.scene,
+        "camera": camera,
+        "rgbd": rgbd,
+        "clean": clean,
+        "target": target,
+        "truth": truth,
+        "noise": noise,
+        "method": method,
+        "spp": spp,
+    }
+
+
+def generate_sample(out_dir: str, index: int, seed: int, cfg: Mapping) -> dict:
+    """Make sample `index` and write its files into `out_dir`; return its record (manifest line).
+
+    The task function of the generator: a pure function of (seed, index, cfg) apart from the
+    files it writes, importable and with picklable arguments, so any executor can run it.
+    """
+    import dofjax
+
+    s = build_sample(cfg, seed, index)
+    files = sample_files(index)
+    os.makedirs(os.path.join(out_dir, os.path.dirname(files["scene"])), exist_ok=True)
+    meta = {
+        **{k: v for k, v in s["truth"].items()},
+        "kind": s["kind"],
+        "identifiable": s["identifiable"],
+        "noise_model": s["noise"]["model"],
+        "noise": s["noise"],
+        "seed": int(seed),
+        "index": int(index),
+        "method": s["method"],
+        "spp": int(s["spp"]),
+        "generator_version": FORMAT_VERSION,
+    }
+    path = {role: os.path.join(out_dir, rel) for role, rel in files.items()}
+    _write_text_atomic(path["scene"], json.dumps(s["scene"], indent=1, sort_keys=True) + "\n")
+    _write_exr_atomic(path["sharp"], dofjax.write_rgbd, s["rgbd"],
+                      metadata={**meta, "role": "sharp"})
+    extra = None if s["noise"]["model"] == "none" else {"clean": s["clean"]}
+    _write_exr_atomic(path["target"], dofjax.write_exr, s["target"],
+                      metadata={**meta, "role": "target"}, extra=extra)
+    record = {
+        "index": int(index),
+        "seed": int(seed),
+        "kind": s["kind"],
+        "identifiable": s["identifiable"],
+        "method": s["method"],
+        "files": {role: files[role] for role in FILE_ROLES},
+        "bytes": {role: os.path.getsize(path[role]) for role in FILE_ROLES},
+        "truth": s["truth"],
+        "noise": s["noise"],
+    }
+    _write_text_atomic(path["record"], _json_dumps(record) + "\n")
+    return record
+
+
+def finished_record(out_dir: str, index: int) -> dict | None:
+    """The record of sample `index` if it is complete on disk, else None."""
+    files = sample_files(index)
+    try:
+        with open(os.path.join(out_dir, files["record"])) as f:
+            record = json.loads(f.read())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(record, dict) or record.get("index") != index:
+        return None
+    try:
+        for role in FILE_ROLES:
+            if os.path.getsize(os.path.join(out_dir, files[role])) != record["bytes"][role]:
+                return None
+    except (OSError, KeyError, TypeError):
+        return None
+    return record
+
+
+# ------------------------------------------------------------------------------------------------
+# The run loop.
+
+
+@dataclass
+class RunSummary:
+    """What a `run` did. Times in seconds, sizes in bytes."""
+
+    count: int
+    generated: int
+    skipped: int
+    seconds: float
+    bytes_on_disk: int
+    kinds: dict[str, int] = field(default_factory=dict)
+    noise_models: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def samples_per_second(self) -> float:
+        return self.generated / self.seconds if self.seconds > 0 else float("nan")
+
+    def text(self) -> str:
+        mb = self.bytes_on_disk / 2**20
+        return (
+            f"{self.count} samples ({self.generated} generated, {self.skipped} already done) in "
+            f"{self.seconds:.1f} s: {self.samples_per_second:.2f} samples/s; {mb:.1f} MiB on disk\n"
+            f"  kinds: {dict(sorted(self.kinds.items()))}\n"
+            f"  noise: {dict(sorted(self.noise_models.items()))}"
+        )
+
+    def as_dict(self) -> dict:
+        return {**asdict(self), "samples_per_second": self.samples_per_second}
+
+
+def _check_generator_file(out_dir: str, seed: int, cfg: Mapping) -> None:
+    """Write generator.json, or check that an existing one has the same seed and config."""
+    path = os.path.join(out_dir, "generator.json")
+    mine = {"format_version": FORMAT_VERSION, "seed": int(seed), "config": cfg}
+    if os.path.exists(path):
+        try:
+            with open(path) as f:
+                theirs = json.load(f)
+        except ValueError:
+            theirs = None
+        if theirs is not None:
+            if theirs != json.loads(_json_dumps(mine)):
+                raise ValueError(
+                    f"--out {out_dir!r} holds samples made with a different seed or config "
+                    f"(see its generator.json); use a new directory or the same seed and config"
+                )
+            return
+    _write_text_atomic(path, json.dumps(mine, indent=1, sort_keys=True) + "\n")
+
+
+def _remove_stale_temporaries(out_dir: str) -> None:
+    """Temporary files of an interrupted run (``*.tmp<pid>.*``)."""
+    root = os.path.join(out_dir, "samples")
+    if not os.path.isdir(root):
+        return
+    for dirpath, _, names in os.walk(root):
+        for name in names:
+            if ".tmp" in name:
+                os.remove(os.path.join(dirpath, name))
+
+
+def _disk_usage(out_dir: str) -> int:
+    total = 0
+    for dirpath, _, names in os.walk(out_dir):
+        for name in names:
+            try:
+                total += os.path.getsize(os.path.join(dirpath, name))
+            except OSError:
+                pass
+    return total
+
+
+def _init_worker(enable_x64: bool) -> None:
+    # Workers compute in the parent's float precision, so --workers N makes the same bytes as 1.
+    import jax
+
+    jax.config.update("jax_enable_x64", enable_x64)
+
+
+def run(out_dir: str, count: int, seed: int, cfg: Mapping, *, workers: int = 1,
+        progress: bool = True) -> RunSummary:
+    """Generate samples 0..count-1 into `out_dir`, skipping finished ones; write the manifest.
+
+    Args:
+        out_dir: output directory (created if missing).
+        count: number of samples, >= 1.
+        seed: the data set's seed, >= 0.
+        cfg: a validated config (`load_config`).
+        workers: processes; 1 runs in this process, N > 1 uses a process pool ('spawn' context:
+            JAX does not survive fork).
+        progress: show a tqdm progress bar with ETA.
+
+    Returns:
+        A `RunSummary`.
+    """
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise ValueError(f"count: must be an integer >= 1, got {count!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed: must be an integer >= 0, got {seed!r}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers: must be an integer >= 1, got {workers!r}")
+    from tqdm.auto import tqdm
+
+    cfg = json.loads(_json_dumps(cfg))
+    start = time.perf_counter()
+    os.makedirs(out_dir, exist_ok=True)
+    _check_generator_file(out_dir, seed, cfg)
+    _remove_stale_temporaries(out_dir)
+    records: dict[int, dict] = {}
+    todo = []
+    for i in range(count):
+        rec = finished_record(out_dir, i)
+        if rec is None:
+            todo.append(i)
+        else:
+            records[i] = rec
+    skipped = len(records)
+    bar = tqdm(total=count, initial=skipped, unit="sample", desc="data_gen", disable=not progress,
+               dynamic_ncols=True)
+    try:
+        if workers == 1 or len(todo) <= 1:
+            for i in todo:
+                records[i] = generate_sample(out_dir, i, seed, cfg)
+                bar.update(1)
+        else:
+            import concurrent.futures as cf
+            import multiprocessing
+
+            import jax
+
+            ctx = multiprocessing.get_context("spawn")
+            with cf.ProcessPoolExecutor(
+                max_workers=min(workers, len(todo)), mp_context=ctx, initializer=_init_worker,
+                initargs=(bool(jax.config.jax_enable_x64),),
+            ) as pool:
+                futures = {pool.submit(generate_sample, out_dir, i, seed, cfg): i for i in todo}
+                try:
+                    for fut in cf.as_completed(futures):
+                        records[futures[fut]] = fut.result()
+                        bar.update(1)
+                except BaseException:
+                    for fut in futures:
+                        fut.cancel()
+                    raise
+    finally:
+        bar.close()
+    lines = [_json_dumps(records[i]) + "\n" for i in range(count)]
+    _write_text_atomic(os.path.join(out_dir, "manifest.jsonl"), "".join(lines))
+    seconds = time.perf_counter() - start
+    return RunSummary(
+        count=count,
+        generated=len(todo),
+        skipped=skipped,
+        seconds=seconds,
+        bytes_on_disk=_disk_usage(out_dir),
+        kinds=dict(Counter(r["kind"] for r in records.values())),
+        noise_models=dict(Counter(r["noise"]["model"] for r in records.values())),
+    )
+
+
+def read_manifest(out_dir: str) -> list[dict]:
+    """The records of a data set, in index order."""
+    with open(os.path.join(out_dir, "manifest.jsonl")) as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+# ------------------------------------------------------------------------------------------------
+# Dry run.
+
+
+def _fmt_range(value, unit: str = "") -> str:
+    if isinstance(value, list):
+        return f"[{value[0]:g}, {value[1]:g}]{unit}"
+    return f"{value:g}{unit}"
+
+
+def dry_run(cfg: Mapping, count: int, seed: int) -> str:
+    """A text description of what `run(out, count, seed, cfg)` would generate (nothing rendered).
+
+    The kind and noise model of every sample are drawn exactly as the generator draws them, so
+    the counts are the real ones, not expectations.
+    """
+    kinds: Counter = Counter()
+    noise: Counter = Counter()
+    for i in range(count):
+        p = plan_sample(cfg, seed, i)
+        kinds[p["kind"]] += 1
+        e = cfg["noise"][p["noise_entry"]]
+        noise[f"{p['noise_entry']}:{e['model']}"] += 1
+    w, h = cfg["size"]
+    cam = cfg["camera"]
+    t = cfg["target"]
+    lines = [
+        f"data_gen plan: {count} samples, seed {seed}, {w}x{h} px",
+        f"target: {t['method']}"
+        + (f" (layers={t['layers']}, sharp spp={t['sharp_spp']})" if t["method"] == "defocus"
+           else f" (lens-sampling reference, spp={t['reference_spp']})"),
+        "kinds (count / expected):",
+    ]
+    exp = describe(cfg, count)
+    for k in KIND_FUNCTIONS:
+        if k in cfg["kinds"] and cfg["kinds"][k] > 0:
+            lines.append(f"  {k:<13} {kinds.get(k, 0):>7} / {exp['kinds'][k]:.1f}")
+    lines.append(f"camera ({cam['model']}):")
+    if cam["model"] == "thin_lens":
+        lines.append(f"  fov {_fmt_range(cam['fov'], ' deg')} (uniform)")
+        lines.append(f"  aperture_radius {_fmt_range(cam['aperture_radius'])} (log-uniform)")
+    else:
+        lines.append(f"  focal_length {_fmt_range(cam['focal_length'])}, "
+                     f"sensor_width {_fmt_range(cam['sensor_width'])}, "
+                     f"f_number {_fmt_range(cam['f_number'])} (log-uniform)")
+    lines.append(f"  focus_distance {_fmt_range(cam['focus_distance'])} (log-uniform"
+                 + (", narrowed to each scene's depth span x/÷ 1.5)" if cam["focus_in_scene"]
+                    else ")"))
+    lines.append(f"  max |CoC| {cam['max_coc_px']} px; scene depths "
+                 f"{_fmt_range(cfg['scene']['depth_range'])}")
+    lines.append("noise (count / expected):")
+    for i, e in enumerate(cfg["noise"]):
+        if e["weight"] <= 0:
+            continue
+        params = {k: v for k, v in e.items() if k not in ("model", "weight")}
+        key = f"{i}:{e['model']}"
+        expected = exp["noise"][f"{e['model']}#{i}"]
+        lines.append(f"  {key:<20} {noise.get(key, 0):>7} / {expected:.1f}  {params}")
+    return "\n".join(lines)
