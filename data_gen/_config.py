@@ -28,6 +28,8 @@ from ._noise import NOISE_MODELS, NOISE_PARAMS
 KINDS = ("planes", "occluders", "mirror", "highlights", "wide_depth", "single_plane")
 PROCEDURAL_TEXTURES = ("checker", "grid", "noise", "stripes")
 TARGET_METHODS = ("defocus", "reference")
+# The most textures one scene of any kind uses (occluders: background, 2 quads, 2 spheres).
+MAX_TEXTURES_PER_SCENE = 5
 CAMERA_MODELS = ("thin_lens", "photographic")
 
 _TOP_KEYS = ("size", "kinds", "scene", "camera", "target", "noise")
@@ -217,6 +219,11 @@ def validate_config(cfg: Mapping) -> dict:
             )
     if frac > 0 and not sk:
         raise ConfigError("config.scene.skimage_textures: empty but skimage_fraction > 0")
+    if (frac == 1.0 or not proc) and len(sk) < MAX_TEXTURES_PER_SCENE:
+        raise ConfigError(
+            f"config.scene.skimage_textures: with no procedural patterns, a scene needs up to "
+            f"{MAX_TEXTURES_PER_SCENE} distinct images, got {len(sk)}: {sk}"
+        )
     if frac < 1 and not proc:
         raise ConfigError("config.scene.procedural_textures: empty but skimage_fraction < 1")
 

@@ -82,14 +82,23 @@ class _Builder:
 
     # -- textures and materials -------------------------------------------------------------
     def texture(self) -> int:
-        """Draw one texture spec: a scikit-image sample or a procedural pattern."""
+        """Draw one texture spec: a scikit-image sample or a procedural pattern.
+
+        Specs are distinct within a scene: the scene loader merges equal specs into one texture,
+        which would change the texture count and so the static structure (one more compile).
+        """
         rng, cfg = self.rng, self.cfg
-        if cfg["skimage_textures"] and rng.uniform() < cfg["skimage_fraction"]:
-            spec = "skimage:" + str(rng.choice(cfg["skimage_textures"]))
-        else:
-            kind = str(rng.choice(cfg["procedural_textures"]))
-            n = int(rng.integers(0, 2**31 - 1)) if kind == "noise" else int(rng.integers(2, 17))
-            spec = f"{kind}:{n}"
+        for _ in range(1000):
+            if cfg["skimage_textures"] and rng.uniform() < cfg["skimage_fraction"]:
+                spec = "skimage:" + str(rng.choice(cfg["skimage_textures"]))
+            else:
+                kind = str(rng.choice(cfg["procedural_textures"]))
+                n = int(rng.integers(0, 2**31 - 1)) if kind == "noise" else int(rng.integers(2, 17))
+                spec = f"{kind}:{n}"
+            if spec not in self.textures:
+                break
+        else:  # cannot happen with the procedural patterns' many values; be loud if it does
+            raise RuntimeError("could not draw a texture spec not already in the scene")
         self.textures.append(spec)
         return len(self.textures) - 1
 
@@ -160,15 +169,28 @@ def scene_dict(textures, materials, objects, lights, ambient_light, background,
                texture_size) -> dict:
     """The scene-file dict (docs/scene_format.md) from the builder's lists.
 
+    Materials are named ``m<i>`` after their index; a material's texture is its spec string.
     Kept in one place so that a change of the file format touches only this function.
     """
+    mats = {}
+    for i, m in enumerate(materials):
+        m = dict(m)
+        t = m.pop("texture")
+        if t is not None:
+            m["texture"] = textures[t]
+        mats[f"m{i}"] = m
+    objs = []
+    for o in objects:
+        o = dict(o)
+        o["material"] = f"m{o['material']}"
+        objs.append(o)
     return {
+        "version": 1,
         "texture_size": int(texture_size),
         "ambient_light": _r(ambient_light),
         "background": _r(background),
-        "textures": list(textures),
-        "materials": [dict(m) for m in materials],
-        "objects": [dict(o) for o in objects],
+        "materials": mats,
+        "objects": objs,
         "lights": [dict(light) for light in lights],
     }
 

@@ -419,6 +419,9 @@ def write_exr(
     spec.alpha_channel = [n for n, _ in planes].index("A") if alpha is not None else -1
     spec.z_channel = [n for n, _ in planes].index("Z") if depth is not None else -1
     spec.attribute("compression", "zip")  # lossless: the round trip must be bitwise exact
+    # OpenImageIO stamps a DateTime attribute (the write time) unless it is set; an empty value
+    # omits it, so the same pixels and metadata always give the same bytes (reproducible data sets).
+    spec.attribute("DateTime", "")
     for name, value in attributes:
         spec.attribute(name, value)
     pixels = np.ascontiguousarray(np.stack([p for _, p in planes], axis=-1), dtype=np.float32)
