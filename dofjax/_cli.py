@@ -92,22 +92,20 @@ def _camera_from_args(args: argparse.Namespace):
     base = dofjax.load_camera(args.scene)
     fields: dict = {}
     if base is not None:
-        fields = {
-            "width": base.width,
-            "height": base.height,
-            "fov": float(base.fov),
-            "focus_distance": float(base.focus_distance),
-            "aperture_radius": float(base.aperture_radius),
-            "eye": np.asarray(base.eye).tolist(),
-            "target": np.asarray(base.target).tolist(),
-            "up": np.asarray(base.up).tolist(),
-        }
+        fields = {"width": base.width, "height": base.height}
+        for name in ("fov", "focus_distance", "aperture_radius", "eye", "target", "up"):
+            fields[name] = _plain(getattr(base, name))
     for flag, field in _CAMERA_FLAGS.items():
         value = getattr(args, flag)
         if value is not None:
             fields[field] = value
-    required = {"width": "--width", "height": "--height", "fov": "--fov",
-                "focus_distance": "--focus", "aperture_radius": "--aperture"}
+    required = {
+        "width": "--width",
+        "height": "--height",
+        "fov": "--fov",
+        "focus_distance": "--focus",
+        "aperture_radius": "--aperture",
+    }
     missing = [flag for field, flag in required.items() if field not in fields]
     if missing:
         raise ValueError(
@@ -116,19 +114,33 @@ def _camera_from_args(args: argparse.Namespace):
     return dofjax.Camera(**fields)
 
 
+def _plain(x):
+    """A camera leaf as Python float(s) for the metadata and the camera override.
+
+    Without `jax_enable_x64` the Camera holds float32, and float(np.float32(0.05)) is
+    0.05000000074505806; the shortest decimal that maps to the same float32 (NumPy's `str`) is
+    what the user typed (0.05), so that is what the file records. float64 leaves pass unchanged.
+    """
+    a = np.asarray(x)
+    if a.dtype == np.float32:
+        values = [float(str(v)) for v in a.reshape(-1)]
+        return values[0] if a.ndim == 0 else values
+    return a.tolist()
+
+
 def _render_metadata(args: argparse.Namespace, camera) -> dict:
     import dofjax
 
     return {
-        "focus_distance": float(camera.focus_distance),
-        "aperture_radius": float(camera.aperture_radius),
-        "fov": float(camera.fov),
+        "focus_distance": _plain(camera.focus_distance),
+        "aperture_radius": _plain(camera.aperture_radius),
+        "fov": _plain(camera.fov),
         "width": camera.width,
         "height": camera.height,
-        "eye": np.asarray(camera.eye).tolist(),
-        "target": np.asarray(camera.target).tolist(),
-        "up": np.asarray(camera.up).tolist(),
-        "pixel_scale": float(camera.pixel_scale),
+        "eye": _plain(camera.eye),
+        "target": _plain(camera.target),
+        "up": _plain(camera.up),
+        "pixel_scale": _plain(camera.pixel_scale),
         "scene": str(args.scene),
         "spp": args.spp,
         "layers": args.layers,
@@ -253,10 +265,18 @@ def _run_info(args: argparse.Namespace) -> int:
 # Registry and entry point.
 
 SUBCOMMANDS: list[Subcommand] = [
-    Subcommand("render", "ray cast a scene file to EXR (RGB + Z + metadata)", _configure_render,
-               _run_render),
-    Subcommand("info", "describe an EXR file: size, channels, ranges, metadata", _configure_info,
-               _run_info),
+    Subcommand(
+        "render",
+        "ray cast a scene file to EXR (RGB + Z + metadata)",
+        _configure_render,
+        _run_render,
+    ),
+    Subcommand(
+        "info",
+        "describe an EXR file: size, channels, ranges, metadata",
+        _configure_info,
+        _run_info,
+    ),
 ]
 
 

@@ -1,0 +1,192 @@
+"""The `dofjax` command line, end to end through `main([...])` on a tiny scene (32 x 24)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+import dofjax
+from dofjax import _cli
+from dofjax._cli import main
+
+CAMERA = {
+    "width": 32,
+    "height": 24,
+    "fov": 50.0,
+    "focus_distance": 4.0,
+    "aperture_radius": 0.05,
+    "eye": [0.0, 0.0, 0.0],
+    "target": [0.0, 0.0, 1.0],
+    "up": [0.0, 1.0, 0.0],
+}
+SCENE = {
+    "materials": {
+        "red": {"diffuse": [0.8, 0.1, 0.1]},
+        "grey": {"diffuse": [0.5, 0.5, 0.5]},
+        "mirror": {"diffuse": [0.0, 0.0, 0.0], "mirror": 0.8},
+    },
+    "objects": [
+        {"type": "sphere", "center": [0.0, 0.0, 4.0], "radius": 1.0, "material": "red"},
+        {"type": "sphere", "center": [1.6, 0.0, 5.0], "radius": 0.8, "material": "mirror"},
+        {"type": "plane", "point": [0.0, -1.0, 0.0], "normal": [0.0, 1.0, 0.0],
+         "material": "grey"},
+    ],  # fmt: skip
+    "lights": [{"type": "point", "position": [2.0, 3.0, 0.0], "intensity": [10.0, 10.0, 10.0]}],
+    "camera": CAMERA,
+}
+
+
+@pytest.fixture
+def scene_file(tmp_path):
+    path = tmp_path / "tiny.json"
+    path.write_text(json.dumps(SCENE))
+    return path
+
+
+@pytest.fixture
+def scene_without_camera(tmp_path):
+    path = tmp_path / "nocam.json"
+    path.write_text(json.dumps({k: v for k, v in SCENE.items() if k != "camera"}))
+    return path
+
+
+def test_render_then_info(scene_file, tmp_path, capsys):
+    out, png = tmp_path / "out.exr", tmp_path / "out.png"
+    # --focus and --aperture override the file's camera (array leaves: no recompilation).
+    status = main([
+        "render", str(scene_file), "-o", str(out), "--png", str(png),
+        "--focus", "2.5", "--aperture", "0.1", "--layers", "2",
+    ])  # fmt: skip
+    printed = capsys.readouterr()
+    assert status == 0, printed.err
+    assert printed.out.count("\n") == 1  # a one-line summary
+    assert f"wrote {out}" in printed.out and "32x24" in printed.out and " s " in printed.out
+    assert out.exists() and png.exists()
+
+    rgb, depth, meta = dofjax.read_exr(out)
+    assert rgb.shape == (24, 32, 3) and depth.shape == (24, 32)
+    assert meta["focus_distance"] == 2.5 and meta["aperture_radius"] == 0.1
+    assert meta["fov"] == 50.0 and (meta["width"], meta["height"]) == (32, 24)
+    assert meta["eye"] == [0.0, 0.0, 0.0] and meta["target"] == [0.0, 0.0, 1.0]
+    assert meta["up"] == [0.0, 1.0, 0.0]
+    assert meta["scene"] == str(scene_file) and meta["spp"] == 1 and meta["layers"] == 2
+    assert meta["version"] == dofjax.__version__
+
+    # The file holds exactly what the library renders for the same camera.
+    camera = dofjax.Camera(**{**CAMERA, "focus_distance": 2.5, "aperture_radius": 0.1})
+    ref = dofjax.render(dofjax.load_scene(scene_file), camera, layers=2)
+    back, _ = dofjax.read_rgbd(out)
+    np.testing.assert_array_equal(back.rgb, np.asarray(ref.rgb, np.float32))
+    np.testing.assert_array_equal(back.depth, np.asarray(ref.depth, np.float32))
+    assert np.isposinf(back.depth).any() and np.isfinite(back.depth).any()
+    assert back.reflection is not None  # the scene has a mirror
+    np.testing.assert_array_equal(back.reflection_depth,
+                                  np.asarray(ref.reflection_depth, np.float32))
+    assert back.layers is not None and back.layers.depth.shape == (2, 24, 32)
+    preview = dofjax.read_image(png)
+    assert preview.shape == (24, 32, 3)
+    assert np.abs(preview - np.clip(back.rgb, 0, 1)).max() < 0.0045  # half an 8-bit code
+
+    assert main(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "resolution: 32 x 24" in text
+    assert "channels (18): R G B Z" in text and "reflection_depth.Z" in text
+    finite = depth[np.isfinite(depth)]
+    background = np.isposinf(depth).mean()
+    assert f"depth: finite [{finite.min():.6g}, {finite.max():.6g}], " in text
+    assert f"background (+inf) {background:.1%}" in text
+    assert f"colour: [{rgb.min():.6g}, {rgb.max():.6g}]" in text
+    assert "dofjax:focus_distance = 2.5" in text and "dofjax:scene = " in text
+
+
+def test_camera_flags_override_the_file(scene_file, scene_without_camera):
+    parser = _cli.build_parser()
+    args = parser.parse_args([
+        "render", str(scene_file), "-o", "x.exr", "--width", "16", "--height", "12",
+        "--fov", "30", "--eye", "1", "2", "3", "--target", "2", "2", "3", "--up", "0", "0", "1",
+    ])  # fmt: skip
+    cam = _cli._camera_from_args(args)
+    assert (cam.width, cam.height) == (16, 12)
+    assert float(cam.fov) == 30.0
+    assert float(cam.focus_distance) == 4.0 and float(cam.aperture_radius) == 0.05  # from file
+    np.testing.assert_array_equal(cam.eye, [1, 2, 3])
+    np.testing.assert_array_equal(cam.target, [2, 2, 3])
+    np.testing.assert_array_equal(cam.up, [0, 0, 1])
+    # Without a camera section, the flags alone make the camera.
+    args = parser.parse_args([
+        "render", str(scene_without_camera), "-o", "x.exr", "--width", "8", "--height", "6",
+        "--fov", "40", "--focus", "3", "--aperture", "0",
+    ])  # fmt: skip
+    cam = _cli._camera_from_args(args)
+    assert (cam.width, cam.height, float(cam.focus_distance)) == (8, 6, 3.0)
+
+
+def test_metadata_records_typed_values_without_float32_noise():
+    # Without x64 a Camera holds float32; the file should say 0.05, not 0.05000000074505806.
+    assert _cli._plain(np.float32(0.05)) == 0.05
+    assert _cli._plain(np.array([0.1, 2.0], np.float32)) == [0.1, 2.0]
+    assert _cli._plain(np.float64(0.05000000074505806)) == 0.05000000074505806
+
+
+def _fails(argv, capsys, *fragments):
+    status = main(argv)
+    err = capsys.readouterr().err
+    assert status == 2
+    assert err.startswith("dofjax: error: ")
+    assert "Traceback" not in err
+    for fragment in fragments:
+        assert fragment in err, err
+    return err
+
+
+def test_errors_exit_2_with_a_message(scene_file, scene_without_camera, tmp_path, capsys):
+    out = str(tmp_path / "o.exr")
+    _fails(["render", str(tmp_path / "missing.json"), "-o", out], capsys, "missing.json")
+    _fails(["render", str(scene_without_camera), "-o", out, "--fov", "40"], capsys,
+           "no camera section", "--width", "--height", "--focus", "--aperture")  # fmt: skip
+    _fails(["render", str(scene_file), "-o", out, "--focus", "-1"], capsys,
+           "Camera.focus_distance", "-1")  # fmt: skip
+    _fails(["render", str(scene_file), "-o", str(tmp_path / "o.png")], capsys, "must end in .exr")
+    _fails(["render", str(scene_file), "-o", out, "--png", str(tmp_path / "p.jpg")], capsys,
+           "--png", "must end in .png")  # fmt: skip
+    _fails(["render", str(scene_file), "-o", out, "--spp", "0"], capsys, "--spp: must be >= 1")
+    _fails(["render", str(scene_file), "-o", out, "--layers", "0"], capsys, "--layers")
+    _fails(["info", str(tmp_path / "nope.exr")], capsys, "nope.exr: no such file")
+    bad = tmp_path / "bad.exr"
+    bad.write_text("not an image")
+    _fails(["info", str(bad)], capsys, "bad.exr: not a readable image")
+    dofjax.write_png(tmp_path / "p.png", np.zeros((2, 2, 3)))
+    _fails(["info", str(tmp_path / "p.png")], capsys, "not an OpenEXR file")
+    assert not (tmp_path / "o.exr").exists()
+
+
+def test_usage_errors_exit_2(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["render", "scene.json"])  # no -o
+    assert info.value.code == 2
+    assert "-o/--output" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        main([])
+    assert info.value.code == 2
+
+
+def test_subcommand_registry_is_extensible(monkeypatch, capsys):
+    seen = {}
+
+    def configure(p: argparse.ArgumentParser) -> None:
+        p.add_argument("value", type=float)
+
+    def run(args: argparse.Namespace) -> int:
+        seen["value"] = args.value
+        if args.value < 0:
+            raise ValueError(f"value: must be >= 0, got {args.value}")
+        return 0
+
+    extra = _cli.Subcommand("echo", "test command", configure, run)
+    monkeypatch.setattr(_cli, "SUBCOMMANDS", [*_cli.SUBCOMMANDS, extra])
+    assert main(["echo", "1.5"]) == 0 and seen["value"] == 1.5
+    assert main(["echo", "--", "-2"]) == 2
+    assert "dofjax: error: value: must be >= 0, got -2.0" in capsys.readouterr().err
