@@ -330,6 +330,36 @@ def _group_layers(chans: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     return out
 
 
+def _write_atomically(path: str, spec, pixels: np.ndarray) -> None:
+    """Write `pixels` with `spec` to a temporary file next to `path`, then rename it over `path`.
+
+    A crash or a full disk mid-write never leaves a truncated file under the final name, so a
+    resumable job can trust every file that exists. The temporary name keeps the extension
+    because OpenImageIO chooses the format by it.
+    """
+    oiio = _oiio()
+    folder, name = os.path.split(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise FileNotFoundError(f"{path}: the directory {folder!r} does not exist")
+    stem, ext = os.path.splitext(name)
+    tmp = os.path.join(folder, f".{stem}.{os.getpid()}.partial{ext}")
+    out = oiio.ImageOutput.create(tmp)
+    if out is None:
+        raise ValueError(f"{path}: cannot create an image writer ({oiio.geterror().strip()})")
+    try:
+        try:
+            if not out.open(tmp, spec):
+                raise OSError(f"{path}: cannot open for writing ({out.geterror().strip()})")
+            if not out.write_image(pixels):
+                raise OSError(f"{path}: writing pixels failed ({out.geterror().strip()})")
+        finally:
+            out.close()
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
 # ---------------------------------------------------------------------------------------------
 # Public API.
 
@@ -425,16 +455,7 @@ def write_exr(
     for name, value in attributes:
         spec.attribute(name, value)
     pixels = np.ascontiguousarray(np.stack([p for _, p in planes], axis=-1), dtype=np.float32)
-    out = oiio.ImageOutput.create(path)
-    if out is None:
-        raise ValueError(f"{path}: cannot create an EXR writer ({oiio.geterror().strip()})")
-    try:
-        if not out.open(path, spec):
-            raise OSError(f"{path}: cannot open for writing ({out.geterror().strip()})")
-        if not out.write_image(pixels):
-            raise OSError(f"{path}: writing pixels failed ({out.geterror().strip()})")
-    finally:
-        out.close()
+    _write_atomically(path, spec, pixels)
 
 
 def _read_layers(path: str) -> tuple[Any, dict[str, np.ndarray]]:
@@ -608,16 +629,7 @@ def write_png(path: str | os.PathLike, rgb: Any, *, exposure: float = 0.0) -> No
     h, w = pixels.shape[:2]
     spec = oiio.ImageSpec(w, h, 3, oiio.UINT8)
     spec.attribute("oiio:ColorSpace", "sRGB")
-    out = oiio.ImageOutput.create(path)
-    if out is None:
-        raise ValueError(f"{path}: cannot create a PNG writer ({oiio.geterror().strip()})")
-    try:
-        if not out.open(path, spec):
-            raise OSError(f"{path}: cannot open for writing ({out.geterror().strip()})")
-        if not out.write_image(pixels):
-            raise OSError(f"{path}: writing pixels failed ({out.geterror().strip()})")
-    finally:
-        out.close()
+    _write_atomically(path, spec, pixels)
 
 
 def _is_linear_colorspace(name: str) -> bool | None:

@@ -390,3 +390,27 @@ def test_read_rgbd_needs_depth(tmp_path):
                      extra={"reflection": np.zeros((2, 2, 3))})
     with pytest.raises(ValueError, match="only one of the layers"):
         dofjax.read_rgbd(tmp_path / "b.exr")
+
+
+def test_exr_bytes_are_reproducible(tmp_path):
+    # No write-time stamp: the same data and metadata give the same file (reproducible data sets).
+    rgb, depth = _data(13)
+    dofjax.write_exr(tmp_path / "a.exr", rgb, depth, {"x": 0.1})
+    dofjax.write_exr(tmp_path / "b.exr", rgb, depth, {"x": 0.1})
+    assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()
+    assert "DateTime" not in {p.name for p in _oiio_read(tmp_path / "a.exr")[0].extra_attribs}
+
+
+def test_write_into_missing_directory_and_no_leftovers(tmp_path):
+    rgb, depth = _data(14)
+    with pytest.raises(FileNotFoundError, match=r"a\.exr: the directory .* does not exist"):
+        dofjax.write_exr(tmp_path / "no" / "a.exr", rgb, depth)
+    with pytest.raises(FileNotFoundError, match="does not exist"):
+        dofjax.write_png(tmp_path / "no" / "a.png", rgb)
+    # Files are written under a temporary name and renamed: nothing else is left behind, and
+    # an existing file is replaced.
+    dofjax.write_exr(tmp_path / "a.exr", rgb)
+    dofjax.write_exr(tmp_path / "a.exr", rgb, depth)
+    dofjax.write_png(tmp_path / "a.png", rgb)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.exr", "a.png"]
+    assert dofjax.read_exr(tmp_path / "a.exr")[1] is not None
