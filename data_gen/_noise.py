@@ -28,7 +28,10 @@ import numpy as np
 
 # Named streams of random numbers per sample: each part of a sample draws from its own stream, so
 # e.g. changing the noise config does not change the scene of the same (seed, index).
-STREAMS = {"scene": 0, "camera": 1, "noise": 2, "reference": 3, "kind": 4}
+# "noise" draws a sample's noise parameters, "noise_pixels" the noise itself, so the stored target
+# can be reproduced from the recorded parameters alone:
+# apply_noise(clean, record["noise"], sample_rng(seed, index, "noise_pixels")).
+STREAMS = {"scene": 0, "camera": 1, "noise": 2, "reference": 3, "kind": 4, "noise_pixels": 5}
 
 NOISE_MODELS = ("none", "gaussian", "poisson_gaussian", "srgb8")
 
@@ -111,7 +114,7 @@ def apply_noise(image: np.ndarray, params: Mapping, rng: np.random.Generator) ->
     Args:
         image: (H, W, C) linear float image.
         params: as returned by `draw_noise_params` (model name plus its parameters).
-        rng: the sample's ``noise`` stream (`sample_rng(seed, index, "noise")`).
+        rng: the sample's ``noise_pixels`` stream (`sample_rng(seed, index, "noise_pixels")`).
 
     Returns:
         The noisy image, float32, same shape.

@@ -237,9 +237,8 @@ def build_sample(cfg: Mapping, seed: int, index: int) -> dict:
         spp = target_cfg["reference_spp"]
         clean = dofjax.render_reference(scene, camera, spp=spp, key=key)
     clean = np.asarray(clean, dtype=np.float32)
-    noise_rng = sample_rng(seed, index, "noise")
-    noise = draw_noise_params(cfg["noise"][plan["noise_entry"]], noise_rng)
-    target = apply_noise(clean, noise, noise_rng)
+    noise = draw_noise_params(cfg["noise"][plan["noise_entry"]], sample_rng(seed, index, "noise"))
+    target = apply_noise(clean, noise, sample_rng(seed, index, "noise_pixels"))
 
     truth = {
         "focus_distance": float(camera.focus_distance),
