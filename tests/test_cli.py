@@ -190,3 +190,26 @@ def test_subcommand_registry_is_extensible(monkeypatch, capsys):
     assert main(["echo", "1.5"]) == 0 and seen["value"] == 1.5
     assert main(["echo", "--", "-2"]) == 2
     assert "dofjax: error: value: must be >= 0, got -2.0" in capsys.readouterr().err
+
+
+def test_info_on_foreign_exr(tmp_path, capsys):
+    # An EXR from another tool: no R, G, B, a NaN in Z, no dofjax metadata. `info` describes it
+    # (counting the NaN) instead of refusing it, so a user can see what is wrong.
+    import OpenImageIO as oiio
+
+    path = str(tmp_path / "y.exr")
+    spec = oiio.ImageSpec(3, 2, 2, oiio.FLOAT)
+    spec.channelnames = ("Y", "Z")
+    px = np.ones((2, 3, 2), np.float32)
+    px[0, 0, 1] = np.nan
+    px[1, :, 1] = np.inf
+    out = oiio.ImageOutput.create(path)
+    out.open(path, spec)
+    out.write_image(px)
+    out.close()
+    assert main(["info", path]) == 0
+    text = capsys.readouterr().out
+    assert "resolution: 3 x 2" in text and "channels (2): Y Z" in text
+    assert "colour: no R, G, B channels" in text
+    assert "depth: finite [1, 1], background (+inf) 50.0%, WARNING 1 NaN" in text
+    assert "metadata: none" in text
