@@ -1032,8 +1032,12 @@ def scene_to_dict(
 
 
 def _dumps(obj, level: int = 0) -> str:
-    """JSON with one entry per line but short number lists kept on one line (readable vectors)."""
+    """JSON with one entry per line, but objects and lists that fit in ~100 columns on one line."""
     pad, inner = "  " * level, "  " * (level + 1)
+    if level > 0 and isinstance(obj, Mapping | list):
+        flat = json.dumps(obj)
+        if len(flat) + len(inner) + 24 <= 100:  # a short object fits on its key's line
+            return flat
     if isinstance(obj, Mapping):
         if not obj:
             return "{}"
