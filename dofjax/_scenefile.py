@@ -1031,22 +1031,29 @@ def scene_to_dict(
     return out
 
 
-def _dumps(obj, level: int = 0) -> str:
-    """JSON with one entry per line, but objects and lists that fit in ~100 columns on one line."""
+def _dumps(obj, level: int = 0, prefix: int = 0) -> str:
+    """JSON with one entry per line, but objects and lists that fit in 100 columns on one line.
+
+    `prefix` is the width of what precedes the value on its line (indent and key).
+    """
     pad, inner = "  " * level, "  " * (level + 1)
     if level > 0 and isinstance(obj, Mapping | list):
         flat = json.dumps(obj)
-        if len(flat) + len(inner) + 24 <= 100:  # a short object fits on its key's line
+        if prefix + len(flat) + 1 <= 100:
             return flat
     if isinstance(obj, Mapping):
         if not obj:
             return "{}"
-        items = [f"{inner}{json.dumps(k)}: {_dumps(v, level + 1)}" for k, v in obj.items()]
+        items = []
+        for k, v in obj.items():
+            head = f"{inner}{json.dumps(k)}: "
+            items.append(head + _dumps(v, level + 1, len(head)))
         return "{\n" + ",\n".join(items) + "\n" + pad + "}"
     if isinstance(obj, list):
         if all(not isinstance(x, Mapping | list) for x in obj):
             return json.dumps(obj)
-        return "[\n" + ",\n".join(inner + _dumps(x, level + 1) for x in obj) + "\n" + pad + "]"
+        body = ",\n".join(inner + _dumps(x, level + 1, len(inner)) for x in obj)
+        return "[\n" + body + "\n" + pad + "]"
     return json.dumps(obj)
 
 
