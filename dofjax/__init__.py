@@ -15,6 +15,8 @@ from ._io import (
     write_png as write_png,
     write_rgbd as write_rgbd,
 )
+from ._raycast import Traced as Traced, render as render, trace as trace
+from ._rgbd import RGBD as RGBD, Layers as Layers
 from ._scene import (
     Boxes as Boxes,
     DirectionalLights as DirectionalLights,
