@@ -40,8 +40,9 @@ _CAMERA_DEFAULTS = {
     "thin_lens": {
         "fov": [35.0, 60.0],
         "focus_distance": [1.0, 20.0],
-        "aperture_radius": [0.005, 0.1],
+        "aperture_radius": [0.005, 0.5],
         "focus_in_scene": True,
+        "min_coc_px": 1.0,
         "max_coc_px": 16.0,
     },
     "photographic": {
@@ -51,6 +52,7 @@ _CAMERA_DEFAULTS = {
         "sensor_width": 0.036,
         "focus_distance": [1.0, 20.0],
         "focus_in_scene": True,
+        "min_coc_px": 1.0,
         "max_coc_px": 16.0,
     },
 }
@@ -239,12 +241,18 @@ def validate_config(cfg: Mapping) -> dict:
         raise ConfigError(f"config.camera (model {model!r}): missing key(s) {missing}")
     cam["focus_distance"] = _range(cam["focus_distance"], "config.camera.focus_distance")
     cam["focus_in_scene"] = _bool(cam["focus_in_scene"], "config.camera.focus_in_scene")
-    if cam["max_coc_px"] is not None:
-        cam["max_coc_px"] = _range(cam["max_coc_px"], "config.camera.max_coc_px",
-                                   allow_fixed=True)
-        if isinstance(cam["max_coc_px"], list):
-            raise ConfigError(f"config.camera.max_coc_px: must be a number or null, got "
-                              f"{cam['max_coc_px']!r}")
+    for key in ("min_coc_px", "max_coc_px"):
+        if cam[key] is not None:
+            if isinstance(cam[key], list):
+                raise ConfigError(f"config.camera.{key}: must be a number or null, got "
+                                  f"{cam[key]!r}")
+            cam[key] = _range(cam[key], f"config.camera.{key}")
+    if (cam["min_coc_px"] is not None and cam["max_coc_px"] is not None
+            and cam["min_coc_px"] > cam["max_coc_px"]):
+        raise ConfigError(
+            f"config.camera.min_coc_px: must be <= max_coc_px, got {cam['min_coc_px']} > "
+            f"{cam['max_coc_px']}"
+        )
     if model == "thin_lens":
         cam["fov"] = _range(cam["fov"], "config.camera.fov", lo_ok=lambda v: 0 < v < 180,
                             why="in (0, 180) degrees")

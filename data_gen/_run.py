@@ -110,11 +110,19 @@ def draw_focus_aperture(cfg: Mapping, rng: np.random.Generator, lens: Mapping,
 
     Focus: log-uniform in ``camera.focus_distance``; with ``focus_in_scene`` that range is first
     narrowed to the scene's depth span widened by a factor 1.5 each way (so a scene of one depth
-    is not always exactly in focus). Aperture: log-uniform in ``aperture_radius`` (or, photographic,
-    the f-number log-uniform in ``f_number`` and A = f / (2N)); with ``max_coc_px`` the upper end
-    of the aperture range is lowered so that no visible depth blurs by more than that many pixels
-    (|c| = A k |1/z - 1/d|, DESIGN.md section 1). Returns the drawn values (float32-exact) and
-    whether the cap was active.
+    is not always exactly in focus).
+
+    Aperture: log-uniform in ``aperture_radius`` (photographic: the f-number log-uniform in
+    ``f_number``, A = f / (2N), which is the same as A log-uniform between f / (2 N_max) and
+    f / (2 N_min)). The blur this gives is the largest |c| = A k |1/z - 1/d| over the visible
+    depths (DESIGN.md section 1); the aperture range is narrowed so that it lies in
+    [``min_coc_px``, ``max_coc_px``]: otherwise most draws would be invisibly small or larger
+    than a defocus window. Where the two disagree, ``max_coc_px`` wins over the configured
+    aperture range, and the configured range over ``min_coc_px``.
+
+    Returns:
+        focus_distance, aperture_radius (float32-exact), f_number (photographic), max_coc_px (the
+        blur actually reached), aperture_capped (the CoC bounds narrowed the range).
     """
     cam = cfg["camera"]
     f_lo, f_hi = (cam["focus_distance"] if isinstance(cam["focus_distance"], list)
@@ -124,33 +132,31 @@ def draw_focus_aperture(cfg: Mapping, rng: np.random.Generator, lens: Mapping,
         if lo <= hi:
             f_lo, f_hi = lo, hi
     if cam["model"] == "photographic":
+        # A thin lens cannot focus inside its focal length (Camera.from_photographic).
         f_lo = max(f_lo, lens["focal_length"] * 1.01)
         f_hi = max(f_hi, f_lo)
     d = _f32(_loguniform(rng, [f_lo, f_hi]))
     k = width / (2.0 * math.tan(math.radians(lens["fov"]) / 2.0))
     spread = max(abs(1.0 / z_near - 1.0 / d), abs(1.0 / z_far - 1.0 / d), 1e-12)
-    a_cap = math.inf if cam["max_coc_px"] is None else cam["max_coc_px"] / (k * spread)
-    out: dict = {"focus_distance": d}
     if cam["model"] == "thin_lens":
-        a_lo, a_hi = (cam["aperture_radius"] if isinstance(cam["aperture_radius"], list)
-                      else [cam["aperture_radius"]] * 2)
-        capped = a_cap < a_hi
-        a_hi = min(a_hi, a_cap)
-        a_lo = min(a_lo, a_hi)
-        out["aperture_radius"] = _f32(_loguniform(rng, [a_lo, a_hi]))
+        r = cam["aperture_radius"]
+        a_lo, a_hi = (r if isinstance(r, list) else [r, r])
     else:
-        f = lens["focal_length"]
-        n_lo, n_hi = (cam["f_number"] if isinstance(cam["f_number"], list)
-                      else [cam["f_number"]] * 2)
-        n_cap = f / (2.0 * a_cap)  # the smallest f-number that keeps |c| <= max_coc_px
-        capped = n_cap > n_lo
-        n_lo = max(n_lo, n_cap)
-        n_hi = max(n_hi, n_lo)
-        n = _loguniform(rng, [n_lo, n_hi])
-        out["f_number"] = n
-        out["aperture_radius"] = _f32(f / (2.0 * n))
-    out["aperture_capped"] = bool(capped)
-    out["max_coc_px"] = float(out["aperture_radius"] * k * spread)
+        n = cam["f_number"]
+        n_lo, n_hi = (n if isinstance(n, list) else [n, n])
+        a_lo, a_hi = lens["focal_length"] / (2.0 * n_hi), lens["focal_length"] / (2.0 * n_lo)
+    lo, hi = a_lo, a_hi
+    if cam["max_coc_px"] is not None:
+        hi = min(hi, cam["max_coc_px"] / (k * spread))
+    if cam["min_coc_px"] is not None:
+        lo = max(lo, cam["min_coc_px"] / (k * spread))
+    lo = min(lo, hi)
+    a = _f32(_loguniform(rng, [lo, hi]))
+    out: dict = {"focus_distance": d, "aperture_radius": a}
+    if cam["model"] == "photographic":
+        out["f_number"] = lens["focal_length"] / (2.0 * a)
+    out["aperture_capped"] = bool(lo > a_lo or hi < a_hi)
+    out["max_coc_px"] = float(a * k * spread)
     return out
 
 
@@ -554,7 +560,8 @@ def dry_run(cfg: Mapping, count: int, seed: int) -> str:
     lines.append(f"  focus_distance {_fmt_range(cam['focus_distance'])} (log-uniform"
                  + (", narrowed to each scene's depth span x/÷ 1.5)" if cam["focus_in_scene"]
                     else ")"))
-    lines.append(f"  max |CoC| {cam['max_coc_px']} px; scene depths "
+    lines.append(f"  largest |CoC| per sample in [{cam['min_coc_px']}, {cam['max_coc_px']}] px; "
+                 f"scene depths "
                  f"{_fmt_range(cfg['scene']['depth_range'])}")
     lines.append("noise (count / expected):")
     for i, e in enumerate(cfg["noise"]):

@@ -247,7 +247,10 @@ def test_dataset_layout_and_manifest(dataset, small_cfg):
         assert r["identifiable"] == (r["kind"] != "single_plane")
         t = r["truth"]
         assert t["width"] == 32 and t["height"] == 32
+        # The largest blur lies in [min_coc_px, max_coc_px] unless the aperture range is too
+        # small to reach min_coc_px (then the aperture is the configured maximum).
         assert t["max_coc_px"] <= 3.0 * (1 + 1e-6)
+        assert t["max_coc_px"] >= 1.0 * (1 - 1e-6) or t["aperture_radius"] == np.float32(0.5)
         assert t["depth_min"] <= t["depth_max"]
 
 
@@ -274,6 +277,27 @@ def test_metadata_matches_the_camera_used(dataset, small_cfg):
         # The stored target is the in-memory one (noise included), bit for bit.
         rgb, _, _ = dofjax.read_exr(os.path.join(out, r["files"]["target"]))
         np.testing.assert_array_equal(rgb, s["target"])
+
+
+def test_photographic_camera_metadata(tmp_path, small_cfg):
+    import dofjax
+
+    cfg = load_config({**SMALL, "kinds": {"single_plane": 1.0},
+                       "camera": {"model": "photographic", "max_coc_px": 3.0}})
+    out = str(tmp_path / "photo")
+    run(out, 2, SEED, cfg, progress=False)
+    for r in read_manifest(out):
+        t = r["truth"]
+        meta = dofjax.read_exr_metadata(os.path.join(out, r["files"]["target"]))
+        assert meta["camera_model"] == "photographic"
+        assert 0.024 <= t["focal_length"] <= 0.085 and t["sensor_width"] == 0.036
+        assert 1.4 * (1 - 1e-6) <= t["f_number"]
+        # A = f / (2N) and fov = 2 atan(S / 2f) (Camera.from_photographic), to float32 rounding.
+        assert t["aperture_radius"] == pytest.approx(t["focal_length"] / (2 * t["f_number"]),
+                                                     rel=1e-6)
+        fov = np.degrees(2 * np.arctan(t["sensor_width"] / (2 * t["focal_length"])))
+        assert t["fov"] == pytest.approx(fov, rel=1e-6)
+        assert meta["f_number"] == t["f_number"] and meta["focal_length"] == t["focal_length"]
 
 
 def test_scene_json_rerenders_to_the_sharp_image(dataset, small_cfg):
