@@ -16,7 +16,8 @@ A texture *spec* is a string:
 
 Grey images are repeated into 3 channels; an alpha channel is dropped. Non-square images are
 centre-cropped to a square (`fit="crop"`, the default) or stretched (`fit="stretch"`), then
-resampled to S x S in linear light (area-averaging when shrinking, bilinear when enlarging). An
+resampled to S x S in linear light (exact box-filter area average when shrinking, bilinear
+when enlarging). An
 image that is already S x S is not resampled, so a texture written by `save_scene` as an EXR reads
 back bit-exact.
 """
@@ -119,7 +120,14 @@ def _read_image_file(path: str, what: str) -> np.ndarray:
     if not buf.read() or buf.has_error:
         raise ValueError(f"texture {what!r}: cannot read image {path!r}: {buf.geterror()}")
     spec = buf.spec()
-    pixels = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float64)  # ints normalised to [0, 1]
+    base = spec.format.basetype
+    if base in (oiio.UINT8, oiio.UINT16):
+        # Integer codes divided in float64 (not OIIO's float32 conversion), so decoding is exact.
+        native = oiio.UINT8 if base == oiio.UINT8 else oiio.UINT16
+        scale = 255.0 if base == oiio.UINT8 else 65535.0
+        pixels = np.asarray(buf.get_pixels(native), dtype=np.float64) / scale
+    else:
+        pixels = np.asarray(buf.get_pixels(oiio.FLOAT), dtype=np.float64)
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]
     if not np.all(np.isfinite(pixels)):
@@ -233,6 +241,26 @@ def procedural_texture(kind: str, n: int, size: int) -> np.ndarray:
     return np.repeat(np.asarray(v)[:, :, None], 3, axis=2).astype(np.float32)
 
 
+def _area_weights(n_in: int, n_out: int) -> np.ndarray:
+    """(n_out, n_in) resampling matrix: box-filter (area) average when shrinking, linear
+    interpolation between texel centres (edges clamped) when enlarging. Rows sum to 1."""
+    w = np.zeros((n_out, n_in))
+    if n_out <= n_in:
+        edges = np.arange(n_out + 1) * (n_in / n_out)
+        for i in range(n_out):
+            lo, hi = edges[i], edges[i + 1]
+            j = np.arange(int(np.floor(lo)), min(int(np.ceil(hi)), n_in))
+            w[i, j] = np.minimum(j + 1, hi) - np.maximum(j, lo)
+        return w / w.sum(axis=1, keepdims=True)
+    x = np.clip((np.arange(n_out) + 0.5) * (n_in / n_out) - 0.5, 0.0, n_in - 1.0)
+    j0 = np.minimum(np.floor(x).astype(int), n_in - 1)
+    j1 = np.minimum(j0 + 1, n_in - 1)
+    f = x - j0
+    np.add.at(w, (np.arange(n_out), j0), 1.0 - f)
+    np.add.at(w, (np.arange(n_out), j1), f)
+    return w
+
+
 def _resample_square(img: np.ndarray, size: int, fit: str) -> np.ndarray:
     h, w = img.shape[:2]
     if fit == "crop" and h != w:
@@ -242,11 +270,9 @@ def _resample_square(img: np.ndarray, size: int, fit: str) -> np.ndarray:
         h = w = side
     if (h, w) == (size, size):
         return img
-    from skimage.transform import resize
-
-    # Area-like averaging when shrinking (Gaussian prefilter), plain bilinear when enlarging.
-    shrinking = h > size or w > size
-    return resize(img, (size, size, 3), order=1, mode="edge", anti_aliasing=shrinking)
+    # Separable and in linear light, so averaging is physically right (no sRGB-space blending).
+    rows, cols = _area_weights(h, size), _area_weights(w, size)
+    return np.einsum("ih,hwc,jw->ijc", rows, img, cols, optimize=True)
 
 
 def load_texture(spec: str, size: int, base_dir: str | os.PathLike = ".", fit: str = "crop"):
