@@ -191,6 +191,20 @@ def _json_dumps(obj) -> str:
 # One sample.
 
 
+class _Clock:
+    """Accumulates wall-clock seconds per stage into a dict (or does nothing without one)."""
+
+    def __init__(self, timings: dict | None):
+        self.timings = timings
+        self.t = time.perf_counter()
+
+    def lap(self, stage: str) -> None:
+        if self.timings is not None:
+            now = time.perf_counter()
+            self.timings[stage] = self.timings.get(stage, 0.0) + now - self.t
+            self.t = now
+
+
 def _depth_span(rgbd) -> tuple[float, float]:
     """Nearest and farthest finite z-depth the camera sees, mirror images included."""
     maps = [np.asarray(rgbd.depth)]
@@ -204,8 +218,11 @@ def _depth_span(rgbd) -> tuple[float, float]:
     return float(finite.min()), float(finite.max())
 
 
-def build_sample(cfg: Mapping, seed: int, index: int) -> dict:
+def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = None) -> dict:
     """Render sample `index` in memory (no files): scene dict, cameras, sharp RGBD, target, truth.
+
+    `timings`, if given, receives the seconds spent per stage ("scene": drawing the scene and
+    loading its textures, "render", "target", "noise"), for the speed benchmark.
 
     Returns:
         A dict with ``scene`` (the JSON-able scene dict), ``camera`` (the dofjax.Camera with focus
@@ -215,6 +232,7 @@ def build_sample(cfg: Mapping, seed: int, index: int) -> dict:
     import dofjax
     import jax
 
+    clock = _Clock(timings)
     width, height = cfg["size"]
     plan = plan_sample(cfg, seed, index)
     kind = plan["kind"]
@@ -225,13 +243,15 @@ def build_sample(cfg: Mapping, seed: int, index: int) -> dict:
     ks = make_scene(kind, sample_rng(seed, index, "scene"), lens["fov"], height / width,
                     cfg["scene"])
     scene = dofjax.scene_from_dict(ks.scene)
+    clock.lap("scene")
     target_cfg = cfg["target"]
     method = target_cfg["method"]
     pinhole = dofjax.Camera(width=width, height=height, fov=lens["fov"], focus_distance=1.0,
                             aperture_radius=0.0)
     layers = target_cfg["layers"] if method == "defocus" else None
     rgbd = dofjax.render(scene, pinhole, spp=target_cfg["sharp_spp"], layers=layers)
-    z_near, z_far = _depth_span(rgbd)
+    z_near, z_far = _depth_span(rgbd)  # (blocks until the render is done)
+    clock.lap("render")
     fa = draw_focus_aperture(cfg, cam_rng, lens, z_near, z_far, width)
     camera = pinhole.replace(focus_distance=fa["focus_distance"],
                              aperture_radius=fa["aperture_radius"])
@@ -243,8 +263,10 @@ def build_sample(cfg: Mapping, seed: int, index: int) -> dict:
         spp = target_cfg["reference_spp"]
         clean = dofjax.render_reference(scene, camera, spp=spp, key=key)
     clean = np.asarray(clean, dtype=np.float32)
+    clock.lap("target")
     noise = draw_noise_params(cfg["noise"][plan["noise_entry"]], sample_rng(seed, index, "noise"))
     target = apply_noise(clean, noise, sample_rng(seed, index, "noise_pixels"))
+    clock.lap("noise")
 
     truth = {
         "focus_distance": float(camera.focus_distance),
@@ -279,7 +301,8 @@ def build_sample(cfg: Mapping, seed: int, index: int) -> dict:
     }
 
 
-def generate_sample(out_dir: str, index: int, seed: int, cfg: Mapping) -> dict:
+def generate_sample(out_dir: str, index: int, seed: int, cfg: Mapping,
+                    timings: dict | None = None) -> dict:
     """Make sample `index` and write its files into `out_dir`; return its record (manifest line).
 
     The task function of the generator: a pure function of (seed, index, cfg) apart from the
@@ -287,7 +310,8 @@ def generate_sample(out_dir: str, index: int, seed: int, cfg: Mapping) -> dict:
     """
     import dofjax
 
-    s = build_sample(cfg, seed, index)
+    s = build_sample(cfg, seed, index, timings)
+    clock = _Clock(timings)
     files = sample_files(index)
     os.makedirs(os.path.join(out_dir, os.path.dirname(files["scene"])), exist_ok=True)
     meta = {
@@ -303,7 +327,20 @@ def generate_sample(out_dir: str, index: int, seed: int, cfg: Mapping) -> dict:
         "generator_version": FORMAT_VERSION,
     }
     path = {role: os.path.join(out_dir, rel) for role, rel in files.items()}
-    _write_text_atomic(path["scene"], json.dumps(s["scene"], indent=1, sort_keys=True) + "\n")
+    cam = s["camera"]
+    # The scene file carries the camera too, so `dofjax render` / `dofjax.load_camera` on it alone
+    # reproduce the sample (the "camera" section holds the true focus distance and aperture).
+    scene_doc = {
+        **s["scene"],
+        "comment": f"data_gen sample {index} of seed {seed}, kind {s['kind']}",
+        "camera": {
+            "width": cam.width, "height": cam.height, "fov": s["truth"]["fov"],
+            "focus_distance": s["truth"]["focus_distance"],
+            "aperture_radius": s["truth"]["aperture_radius"],
+            "eye": s["truth"]["eye"], "target": s["truth"]["target"], "up": s["truth"]["up"],
+        },
+    }
+    _write_text_atomic(path["scene"], json.dumps(scene_doc, indent=1, sort_keys=True) + "\n")
     _write_exr_atomic(path["sharp"], dofjax.write_rgbd, s["rgbd"],
                       metadata={**meta, "role": "sharp"})
     extra = None if s["noise"]["model"] == "none" else {"clean": s["clean"]}
@@ -321,6 +358,7 @@ def generate_sample(out_dir: str, index: int, seed: int, cfg: Mapping) -> dict:
         "noise": s["noise"],
     }
     _write_text_atomic(path["record"], _json_dumps(record) + "\n")
+    clock.lap("write")
     return record
 
 

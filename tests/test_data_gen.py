@@ -307,10 +307,12 @@ def test_scene_json_rerenders_to_the_sharp_image(dataset, small_cfg):
     for r in read_manifest(out):
         scene = dofjax.load_scene(os.path.join(out, r["files"]["scene"]))
         rgbd, meta = dofjax.read_rgbd(os.path.join(out, r["files"]["sharp"]))
-        cam = dofjax.Camera(width=meta["width"], height=meta["height"], fov=meta["fov"],
-                            focus_distance=meta["focus_distance"],
-                            aperture_radius=meta["aperture_radius"], eye=meta["eye"],
-                            target=meta["target"], up=meta["up"])
+        cam = dofjax.load_camera(os.path.join(out, r["files"]["scene"]))
+        assert (cam.width, cam.height) == (meta["width"], meta["height"])
+        for name in ("fov", "focus_distance", "aperture_radius"):
+            assert float(getattr(cam, name)) == meta[name]
+        for name in ("eye", "target", "up"):
+            assert np.asarray(getattr(cam, name)).tolist() == meta[name]
         again = dofjax.render(scene, cam, spp=small_cfg["target"]["sharp_spp"],
                               layers=small_cfg["target"]["layers"])
         np.testing.assert_array_equal(np.asarray(again.rgb, np.float32), np.asarray(rgbd.rgb))
