@@ -108,7 +108,7 @@ def _is_number(x) -> bool:
 def _check_object(d, where: str, required: tuple, optional: tuple) -> Mapping:
     if not isinstance(d, Mapping):
         raise SceneError(where, f"must be an object {{...}}, got {_fmt(d)}")
-    allowed = tuple(required) + tuple(optional)
+    allowed = set(required) | set(optional)
     for key in d:
         if key not in allowed:
             raise SceneError(
@@ -324,7 +324,9 @@ def load_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
                 i = int(m.group(1))
                 n = len(vertices)
                 if i == 0:
-                    raise SceneError(where, f"vertex index 0 is invalid (OBJ is 1-based) in {line!r}")
+                    raise SceneError(
+                        where, f"vertex index 0 is invalid (OBJ is 1-based) in {line!r}"
+                    )
                 j = i - 1 if i > 0 else n + i
                 if not 0 <= j < n:
                     raise SceneError(
@@ -428,7 +430,9 @@ def camera_from_dict(d: Mapping, where: str = "camera") -> Camera:
             up=up,
         )
     if not np.any(target != eye):
-        raise SceneError(_join(where, "target"), f"must differ from eye, got {_fmt(d.get('target'))}")
+        raise SceneError(
+            _join(where, "target"), f"must differ from eye, got {_fmt(d.get('target'))}"
+        )
     try:
         return make()
     except ValueError as err:  # Camera's own checks (e.g. up parallel to the view direction)
@@ -537,9 +541,10 @@ def _orthonormal_axes(normal, d, where):
             )
         if "v_axis" in d:
             v = _direction(d, "v_axis", where)
-            if abs(float(v @ normal)) > _PERPENDICULAR_TOLERANCE or abs(
-                float(v @ u)
-            ) > _PERPENDICULAR_TOLERANCE:
+            if (
+                abs(float(v @ normal)) > _PERPENDICULAR_TOLERANCE
+                or abs(float(v @ u)) > _PERPENDICULAR_TOLERANCE
+            ):
                 raise SceneError(
                     _join(where, "v_axis"),
                     f"must be perpendicular to normal and u_axis, got {_fmt(d['v_axis'])}",
@@ -587,7 +592,8 @@ def _mesh(d, where: str, base_dir: str) -> tuple[np.ndarray, np.ndarray, np.ndar
         raw_v, raw_f = d["vertices"], d["faces"]
         if not isinstance(raw_v, list) or not raw_v:
             raise SceneError(
-                _join(where, "vertices"), f"must be a non-empty list of [x, y, z], got {_fmt(raw_v)}"
+                _join(where, "vertices"),
+                f"must be a non-empty list of [x, y, z], got {_fmt(raw_v)}",
             )
         verts = np.stack(
             [_vector(p, _join(_join(where, "vertices"), i)) for i, p in enumerate(raw_v)]
@@ -609,7 +615,8 @@ def _mesh(d, where: str, base_dir: str) -> tuple[np.ndarray, np.ndarray, np.ndar
                 if not 0 <= j < len(verts):
                     raise SceneError(
                         path,
-                        f"index {j} out of range (0-based, {len(verts)} vertices), got {_fmt(face)}",
+                        f"index {j} out of range (0-based, {len(verts)} vertices), "
+                        f"got {_fmt(face)}",
                     )
             tris.extend((face[0], face[k], face[k + 1]) for k in range(1, len(face) - 1))
         faces = np.asarray(tris, dtype=np.int32)
@@ -675,7 +682,8 @@ def _object(d, where, base_dir) -> tuple[str, dict]:
             ev = _vec3(d, "edge_v", where, nonzero=True)
             if np.linalg.norm(np.cross(eu, ev)) <= 1e-12 * np.linalg.norm(eu) * np.linalg.norm(ev):
                 raise SceneError(
-                    _join(where, "edge_v"), f"must not be parallel to edge_u, got {_fmt(d['edge_v'])}"
+                    _join(where, "edge_v"),
+                    f"must not be parallel to edge_u, got {_fmt(d['edge_v'])}",
                 )
         else:
             center = _vec3(d, "center", where)
@@ -759,12 +767,16 @@ def scene_from_dict(d: Mapping, base_dir: str | os.PathLike = ".") -> Scene:
     if "version" in d:
         version = _integer(d, "version", "")
         if version != FORMAT_VERSION:
-            raise SceneError("version", f"unsupported format version {version} (this reads {FORMAT_VERSION})")
+            raise SceneError(
+                "version", f"unsupported format version {version} (this reads {FORMAT_VERSION})"
+            )
     size = _integer(d, "texture_size", "", DEFAULT_TEXTURE_SIZE, ge=1)
 
     raw_materials = d["materials"]
     if not isinstance(raw_materials, Mapping):
-        raise SceneError("materials", f"must be an object {{name: material}}, got {_fmt(raw_materials)}")
+        raise SceneError(
+            "materials", f"must be an object {{name: material}}, got {_fmt(raw_materials)}"
+        )
     if not raw_materials:
         raise SceneError("materials", "must define at least one material")
     textures: dict = {}
@@ -790,8 +802,11 @@ def scene_from_dict(d: Mapping, base_dir: str | os.PathLike = ".") -> Scene:
             )
         if kind != "triangle":  # triangles (meshes) come with their leading axis already
             fields = {k: np.asarray(v)[None] for k, v in fields.items()}
-        fields["material"] = np.full(len(fields["v0" if kind == "triangle" else next(iter(fields))]),
-                                     names.index(mat), dtype=np.int32)
+        fields["material"] = np.full(
+            len(fields["v0" if kind == "triangle" else next(iter(fields))]),
+            names.index(mat),
+            dtype=np.int32,
+        )
         groups[kind].append(fields)
 
     raw_lights = d.get("lights", [])
@@ -805,9 +820,7 @@ def scene_from_dict(d: Mapping, base_dir: str | os.PathLike = ".") -> Scene:
     ambient_light = _colour(d, "ambient_light", "", (1.0, 1.0, 1.0))
     background = _colour(d, "background", "", (0.0, 0.0, 0.0))
     any_mirror = any(m["mirror"] > 0 for m in materials.values())
-    max_bounces = _integer(
-        d, "max_bounces", "", DEFAULT_MIRROR_BOUNCES if any_mirror else 0, ge=0
-    )
+    max_bounces = _integer(d, "max_bounces", "", DEFAULT_MIRROR_BOUNCES if any_mirror else 0, ge=0)
     if "camera" in d:
         camera_from_dict(d["camera"], "camera")
 
@@ -823,8 +836,11 @@ def scene_from_dict(d: Mapping, base_dir: str | os.PathLike = ".") -> Scene:
         texture_stack = jnp.asarray(np.stack(images), dtype=jnp.float32)
     return Scene(
         materials=Materials(
-            **{k: np.stack([m[k] for m in mats]) for k in _MATERIAL_KEYS if k not in
-               ("texture_fit", "comment")}
+            **{
+                k: np.stack([m[k] for m in mats])
+                for k in _MATERIAL_KEYS
+                if k not in ("texture_fit", "comment")
+            }
         ),
         spheres=build(Spheres, groups["sphere"], ("center", "radius", "material")),
         planes=build(
@@ -924,9 +940,11 @@ def scene_to_dict(
     """
     m = scene.materials
     count = m.count
-    names = list(material_names) if material_names is not None else [
-        f"material_{i}" for i in range(count)
-    ]
+    names = (
+        list(material_names)
+        if material_names is not None
+        else [f"material_{i}" for i in range(count)]
+    )
     if len(names) != count or len(set(names)) != count or not all(names):
         raise ValueError(
             f"scene_to_dict: material_names must be {count} distinct non-empty names, got {names!r}"
@@ -952,7 +970,8 @@ def scene_to_dict(
         if t >= 0:
             if t >= n_tex:
                 raise ValueError(
-                    f"scene_to_dict: materials.texture[{i}] = {t} but the scene has {n_tex} textures"
+                    f"scene_to_dict: materials.texture[{i}] = {t} but the scene has "
+                    f"{n_tex} textures"
                 )
             entry["texture"] = texture_specs[t]
         materials[name] = entry
@@ -965,26 +984,46 @@ def scene_to_dict(
     if scene.spheres is not None:
         s = scene.spheres
         for i in range(s.material.shape[0]):
-            objects.append({"type": "sphere", "center": _rows(s.center[i]),
-                            "radius": float(s.radius[i]), "material": mat(s, i)})
+            objects.append(
+                {
+                    "type": "sphere",
+                    "center": _rows(s.center[i]),
+                    "radius": float(s.radius[i]),
+                    "material": mat(s, i),
+                }
+            )
     if scene.planes is not None:
         p = scene.planes
         for i in range(p.material.shape[0]):
-            objects.append({"type": "plane", "point": _rows(p.point[i]),
-                            "normal": _rows(p.normal[i]), "u_axis": _rows(p.u_axis[i]),
-                            "v_axis": _rows(p.v_axis[i]), "uv_scale": float(p.uv_scale[i]),
-                            "material": mat(p, i)})
+            objects.append(
+                {
+                    "type": "plane",
+                    "point": _rows(p.point[i]),
+                    "normal": _rows(p.normal[i]),
+                    "u_axis": _rows(p.u_axis[i]),
+                    "v_axis": _rows(p.v_axis[i]),
+                    "uv_scale": float(p.uv_scale[i]),
+                    "material": mat(p, i),
+                }
+            )
     if scene.quads is not None:
         q = scene.quads
         for i in range(q.material.shape[0]):
-            objects.append({"type": "quad", "corner": _rows(q.corner[i]),
-                            "edge_u": _rows(q.edge_u[i]), "edge_v": _rows(q.edge_v[i]),
-                            "material": mat(q, i)})
+            objects.append(
+                {
+                    "type": "quad",
+                    "corner": _rows(q.corner[i]),
+                    "edge_u": _rows(q.edge_u[i]),
+                    "edge_v": _rows(q.edge_v[i]),
+                    "material": mat(q, i),
+                }
+            )
     if scene.boxes is not None:
         b = scene.boxes
         for i in range(b.material.shape[0]):
-            objects.append({"type": "box", "lo": _rows(b.lo[i]), "hi": _rows(b.hi[i]),
-                            "material": mat(b, i)})
+            objects.append(
+                {"type": "box", "lo": _rows(b.lo[i]), "hi": _rows(b.hi[i]), "material": mat(b, i)}
+            )
     if scene.triangles is not None:
         t = scene.triangles
         tm = np.asarray(t.material)
@@ -995,27 +1034,49 @@ def scene_to_dict(
             while stop < tm.shape[0] and tm[stop] == tm[start]:
                 stop += 1
             if stop - start == 1:
-                objects.append({"type": "triangle", "v0": _rows(v0[start]), "v1": _rows(v1[start]),
-                                "v2": _rows(v2[start]), "material": names[int(tm[start])]})
+                objects.append(
+                    {
+                        "type": "triangle",
+                        "v0": _rows(v0[start]),
+                        "v1": _rows(v1[start]),
+                        "v2": _rows(v2[start]),
+                        "material": names[int(tm[start])],
+                    }
+                )
             else:
                 verts = np.stack([v0[start:stop], v1[start:stop], v2[start:stop]], axis=1)
                 k = stop - start
-                objects.append({"type": "mesh", "vertices": verts.reshape(-1, 3).tolist(),
-                                "faces": np.arange(3 * k).reshape(k, 3).tolist(),
-                                "material": names[int(tm[start])]})
+                objects.append(
+                    {
+                        "type": "mesh",
+                        "vertices": verts.reshape(-1, 3).tolist(),
+                        "faces": np.arange(3 * k).reshape(k, 3).tolist(),
+                        "material": names[int(tm[start])],
+                    }
+                )
             start = stop
 
     lights: list[dict] = []
     if scene.point_lights is not None:
         pl = scene.point_lights
         for i in range(pl.position.shape[0]):
-            lights.append({"type": "point", "position": _rows(pl.position[i]),
-                           "intensity": _rows(pl.intensity[i])})
+            lights.append(
+                {
+                    "type": "point",
+                    "position": _rows(pl.position[i]),
+                    "intensity": _rows(pl.intensity[i]),
+                }
+            )
     if scene.directional_lights is not None:
         dl = scene.directional_lights
         for i in range(dl.direction.shape[0]):
-            lights.append({"type": "directional", "direction": _rows(dl.direction[i]),
-                           "intensity": _rows(dl.intensity[i])})
+            lights.append(
+                {
+                    "type": "directional",
+                    "direction": _rows(dl.direction[i]),
+                    "intensity": _rows(dl.intensity[i]),
+                }
+            )
 
     out: dict = {"version": FORMAT_VERSION}
     if camera is not None:

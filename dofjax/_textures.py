@@ -1,7 +1,8 @@
 """Texture images for scene materials: files, scikit-image samples and procedural patterns.
 
 Every texture becomes a square (S, S, 3) float32 array of **linear** RGB, row 0 the image's top, so
-that all textures of a scene stack into one (T, S, S, 3) array (`Scene.textures`) with a static shape.
+that all textures of a scene stack into one (T, S, S, 3) array (`Scene.textures`) with a static
+shape.
 
 A texture *spec* is a string:
 
@@ -67,7 +68,8 @@ SKIMAGE_SAMPLES = (
     "text",
 )
 
-# scikit-image fetches these with pooch from the internet on first use: refused (offline, reproducible).
+# scikit-image fetches these with pooch from the internet on first use: refused (offline and
+# reproducible).
 SKIMAGE_NEEDS_DOWNLOAD = (
     "brain",
     "cells3d",
@@ -104,7 +106,9 @@ def _to_rgb(img: np.ndarray, what: str) -> np.ndarray:
     if img.ndim == 2:
         img = img[:, :, None]
     if img.ndim != 3 or img.shape[2] not in (1, 2, 3, 4):
-        raise ValueError(f"texture {what!r}: expected a grey or RGB(A) image, got shape {img.shape}")
+        raise ValueError(
+            f"texture {what!r}: expected a grey or RGB(A) image, got shape {img.shape}"
+        )
     if img.shape[2] in (1, 2):  # grey or grey + alpha
         img = np.repeat(img[:, :, :1], 3, axis=2)
     return img[:, :, :3]
@@ -164,7 +168,11 @@ def _skimage_sample(name: str, what: str) -> np.ndarray:
 
     try:
         img = getattr(skimage.data, name)()
-    except (ModuleNotFoundError, OSError, ValueError) as err:  # a future scikit-image moved it online
+    except (
+        ModuleNotFoundError,
+        OSError,
+        ValueError,
+    ) as err:  # a future scikit-image moved it online
         raise ValueError(
             f"texture {what!r}: scikit-image sample {name!r} is not available offline in this "
             f"scikit-image version ({err})"
@@ -237,7 +245,9 @@ def procedural_texture(kind: str, n: int, size: int) -> np.ndarray:
         lo, hi = acc.min(), acc.max()
         return ((acc - lo) / (hi - lo)).astype(np.float32)
     else:
-        raise ValueError(f"procedural_texture: unknown kind {kind!r} (known: {', '.join(PATTERNS)})")
+        raise ValueError(
+            f"procedural_texture: unknown kind {kind!r} (known: {', '.join(PATTERNS)})"
+        )
     return np.repeat(np.asarray(v)[:, :, None], 3, axis=2).astype(np.float32)
 
 

@@ -77,7 +77,8 @@ def test_resampling_crop_and_stretch(tmp_path):
     # Shrinking is an exact box-filter (area) average.
     big = load_texture("checker:16", 64)  # squares of 4 texels
     np.testing.assert_array_equal(
-        load_texture(str(_write(tmp_path / "c.exr", big)), 16), procedural_texture("checker", 16, 16)
+        load_texture(str(_write(tmp_path / "c.exr", big)), 16),
+        procedural_texture("checker", 16, 16),
     )
     np.testing.assert_allclose(load_texture(str(tmp_path / "c.exr"), 8), 0.5, rtol=0, atol=1e-7)
     # A non-integer ratio, 3 -> 2 texels: weights (1, 1/2, 0) and (0, 1/2, 1), normalised by 3/2.
