@@ -25,6 +25,7 @@ back bit-exact.
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 
@@ -187,6 +188,21 @@ def _skimage_sample(name: str, what: str) -> np.ndarray:
     return img.astype(np.float64)
 
 
+def _skimage_sample_checked(name: str, what: str) -> None:
+    if name in SKIMAGE_NEEDS_DOWNLOAD or name not in SKIMAGE_SAMPLES:
+        _skimage_sample(name, what)  # raises the explanatory error
+
+
+@functools.lru_cache(maxsize=32)
+def _cached_skimage_texture(name: str, size: int, fit: str) -> np.ndarray:
+    """Bundled samples never change: decode and resample each (name, size, fit) once per process
+    (data generators load the same few samples for thousands of scenes). At most 32 x S^2 x 12 B."""
+    img = _to_rgb(_skimage_sample(name, f"skimage:{name}"), f"skimage:{name}")
+    out = np.asarray(_resample_square(img, size, fit), dtype=np.float32)
+    out.flags.writeable = False
+    return out
+
+
 def _parse_count(kind: str, arg: str, what: str, minimum: int) -> int:
     if re.fullmatch(r"\s*[+-]?\d+\s*", arg) is None:
         raise ValueError(f"texture {what!r}: {kind}:N needs an integer N, got {arg!r}")
@@ -314,7 +330,9 @@ def load_texture(spec: str, size: int, base_dir: str | os.PathLike = ".", fit: s
         n = _parse_count(kind, arg, spec, 0 if kind == "noise" else 1)
         return procedural_texture(kind, n, size)
     if sep and kind == "skimage":
-        img = _skimage_sample(arg.strip(), spec)
+        name = arg.strip()
+        _skimage_sample_checked(name, spec)  # errors name the spec the caller wrote
+        return _cached_skimage_texture(name, size, fit).copy()
     else:
         path = spec if os.path.isabs(spec) else os.path.join(os.fspath(base_dir), spec)
         if not os.path.isfile(path) and sep and len(kind) > 1:

@@ -171,3 +171,10 @@ def test_unreadable_and_nonfinite_files(tmp_path):
     write_image(tmp_path / "nan.exr", bad, oiio.FLOAT)
     with pytest.raises(ValueError, match="NaN or infinite"):
         load_texture(str(tmp_path / "nan.exr"), 4)
+
+
+def test_cached_samples_are_returned_as_copies():
+    first = load_texture("skimage:coins", 8)
+    first[:] = -1.0  # the caller owns its array; the cache must not change
+    again = load_texture("skimage:coins", 8)
+    assert again.min() >= 0.0 and again.flags.writeable
