@@ -1,0 +1,518 @@
+"""The ray caster against closed forms: z-depth, Phong shading by hand, shadows, mirrors and their
+virtual depth, depth peeling, supersampling, retrace guard, float32, no NaN on misses."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dofjax
+from dofjax import _intersect, _raycast
+from dofjax._scene import (
+    DirectionalLights,
+    Materials,
+    Planes,
+    PointLights,
+    Quads,
+    Scene,
+    Spheres,
+)
+
+Camera = dofjax.Camera
+
+
+def materials(n=1, **fields):
+    """`n` materials; each field given as one row (shared) or a list of n rows."""
+    defaults = dict(
+        ambient=[0.0] * 3,
+        diffuse=[0.0] * 3,
+        specular=[0.0] * 3,
+        shininess=1.0,
+        emission=[0.0] * 3,
+        mirror=0.0,
+        texture=-1,
+    )
+    out = {}
+    for name, default in defaults.items():
+        value = fields.get(name, default)
+        vector = name in ("ambient", "diffuse", "specular", "emission")
+        per_material = (
+            n > 1
+            and isinstance(value, list)
+            and len(value) == n
+            and (isinstance(value[0], list) or not vector)
+        )
+        out[name] = value if per_material else [value] * n
+    return Materials(**out)
+
+
+def to_float32(tree):
+    """Cast float leaves (tree_map rebuilds Modules without running their float64 converters)."""
+    return jax.tree.map(
+        lambda x: x.astype(jnp.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, tree
+    )
+
+
+def rows(value, mask):
+    """`value` (3,) repeated for every True of `mask` (assert_allclose does not broadcast)."""
+    return np.broadcast_to(value, (int(np.sum(mask)), 3))
+
+
+def plane_z(z, material=0):
+    return Planes(
+        point=[[0, 0, z]],
+        normal=[[0, 0, -1.0]],
+        u_axis=[[1.0, 0, 0]],
+        v_axis=[[0, 1.0, 0]],
+        uv_scale=[1.0],
+        material=[material],
+    )
+
+
+# ------------------------------------------------------------------------------------- depth
+def test_plane_depth_is_z_not_ray_length():
+    scene = Scene(materials=materials(emission=[1.0, 1.0, 1.0]), planes=plane_z(5.0))
+    cam = Camera(40, 30, fov=70.0, focus_distance=5.0, aperture_radius=0.0)
+    out = dofjax.render(scene, cam)
+    assert out.depth.shape == (30, 40) and out.rgb.shape == (30, 40, 3)
+    np.testing.assert_allclose(out.depth, 5.0, rtol=1e-13)
+    # Ray length to the corner pixel is clearly longer: the depth is not the ray length.
+    d = cam.pixel_directions()[0, 0]
+    length = 5.0 * float(jnp.linalg.norm(d))
+    assert length > 1.25 * 5.0
+    assert float(out.depth[0, 0]) == pytest.approx(float(out.depth[15, 20]), rel=1e-13)
+    assert out.reflection is None and out.reflection_depth is None and out.layers is None
+
+
+# ------------------------------------------------------------------------------------- shading
+AMB, KD, KS, SHINE, EMIT = [0.1, 0.2, 0.3], [0.6, 0.5, 0.4], [0.3, 0.35, 0.4], 12.0, [0.01, 0.02, 0.03]
+AMB_LIGHT = [0.5, 0.6, 0.7]
+P_POS, P_INT = np.array([2.0, 2.5, 1.0]), np.array([20.0, 18.0, 16.0])
+D_DIR, D_INT = np.array([1.0, -0.5, 0.6]), np.array([0.3, 0.2, 0.1])
+
+
+def phong_scene():
+    return Scene(
+        materials=materials(
+            ambient=AMB, diffuse=KD, specular=KS, shininess=SHINE, emission=EMIT
+        ),
+        spheres=Spheres(center=[[0.0, 0.0, 5.0]], radius=[1.2], material=[0]),
+        point_lights=PointLights(position=[P_POS], intensity=[P_INT]),
+        directional_lights=DirectionalLights(direction=[D_DIR], intensity=[D_INT]),
+        ambient_light=AMB_LIGHT,
+        background=[0.0, 0.0, 0.0],
+    )
+
+
+def test_lit_sphere_equals_phong_by_hand():
+    scene = phong_scene()
+    cam = Camera(48, 48, fov=35.0, focus_distance=5.0, aperture_radius=0.0)
+    out = dofjax.render(scene, cam)
+    d = np.asarray(cam.pixel_directions()).reshape(-1, 3)
+    # Closed-form sphere hit from the origin: |t d - c|^2 = r^2.
+    c, r = np.array([0.0, 0.0, 5.0]), 1.2
+    a, b, cc = (d * d).sum(1), -2 * d @ c, c @ c - r * r
+    disc = b * b - 4 * a * cc
+    hit = disc > 1e-6
+    t = (-b - np.sqrt(np.where(hit, disc, 0.0))) / (2 * a)
+    p = t[:, None] * d
+    n = (p - c) / r
+    v = -d / np.linalg.norm(d, axis=1, keepdims=True)
+    colour = np.array(EMIT) + np.array(AMB) * np.array(AMB_LIGHT)
+    colour = np.broadcast_to(colour, p.shape).copy()
+    spec_max = 0.0
+    for l_vec, radiance in (
+        (P_POS - p, P_INT / ((P_POS - p) ** 2).sum(1, keepdims=True)),
+        (np.broadcast_to(-D_DIR, p.shape), np.broadcast_to(D_INT, p.shape)),
+    ):
+        l_hat = l_vec / np.linalg.norm(l_vec, axis=1, keepdims=True)
+        ndotl = (n * l_hat).sum(1, keepdims=True)
+        refl = 2 * ndotl * n - l_hat
+        spec = np.maximum((refl * v).sum(1, keepdims=True), 0.0) ** SHINE
+        term = radiance * (np.array(KD) * np.maximum(ndotl, 0) + np.array(KS) * spec)
+        # The sphere is convex: a light is visible exactly where n.l > 0.
+        colour += np.where(ndotl > 0, term, 0.0)
+        spec_max = max(spec_max, float((spec * (ndotl > 0)).max()))
+    rgb = np.asarray(out.rgb).reshape(-1, 3)
+    np.testing.assert_allclose(rgb[hit], colour[hit], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.depth).reshape(-1)[hit], t[hit], rtol=1e-12)
+    assert np.all(np.isinf(np.asarray(out.depth).reshape(-1)[~hit & (disc < -1e-6)]))
+    assert spec_max > 0.5  # the highlight is in view: the specular term was really tested
+    assert hit.sum() > 200 and (~hit).sum() > 200
+
+
+@pytest.mark.parametrize("light", ["point", "directional"])
+def test_shadowed_point_is_ambient_only(light):
+    # Light from (+x, +y); the sphere's shadow on the floor y = -1 is centred at (-1, -1, 5).
+    if light == "point":
+        lights = dict(point_lights=PointLights(position=[[5.0, 5.0, 5.0]], intensity=[[30.0] * 3]))
+    else:
+        lights = dict(
+            directional_lights=DirectionalLights(direction=[[-1.0, -1.0, 0.0]], intensity=[[0.8] * 3])
+        )
+    scene = Scene(
+        materials=materials(2, ambient=[0.1, 0.1, 0.1], diffuse=[0.7, 0.6, 0.5], emission=[0.0] * 3),
+        spheres=Spheres(center=[[0.0, 0.0, 5.0]], radius=[1.0], material=[0]),
+        planes=Planes(
+            point=[[0, -1.0, 0]],
+            normal=[[0, 1.0, 0]],
+            u_axis=[[1.0, 0, 0]],
+            v_axis=[[0, 0, 1.0]],
+            uv_scale=[1.0],
+            material=[1],
+        ),
+        ambient_light=[1.0, 1.0, 1.0],
+        **lights,
+    )
+    o = jnp.zeros(3)
+    d = jnp.asarray([[-0.2, -0.2, 1.0], [0.2, -0.2, 1.0]])
+    out = dofjax.trace(scene, o, d)
+    np.testing.assert_allclose(out.t, [5.0, 5.0], rtol=1e-12)
+    # In the shadow: ambient only.
+    np.testing.assert_allclose(out.rgb[0], [0.1, 0.1, 0.1], rtol=1e-12)
+    # Lit point (1, -1, 5), normal +y: diffuse * radiance * n.l.
+    p = np.array([1.0, -1.0, 5.0])
+    if light == "point":
+        to_l = np.array([5.0, 5.0, 5.0]) - p
+        lit = 30.0 / (to_l @ to_l) * to_l[1] / np.linalg.norm(to_l)
+    else:
+        lit = 0.8 * 1.0 / np.sqrt(2.0)
+    np.testing.assert_allclose(out.rgb[1], 0.1 + np.array([0.7, 0.6, 0.5]) * lit, rtol=1e-12)
+
+
+def test_no_self_shadow_acne_in_float32():
+    # A lit floor seen at grazing angles must not shadow itself (offset origins along the normal).
+    scene = Scene(
+        materials=materials(ambient=[0.05] * 3, diffuse=[0.8] * 3, specular=[0.2] * 3, shininess=8.0),
+        planes=Planes(
+            point=[[0, -1.0, 0]],
+            normal=[[0, 1.0, 0]],
+            u_axis=[[1.0, 0, 0]],
+            v_axis=[[0, 0, 1.0]],
+            uv_scale=[1.0],
+            material=[0],
+        ),
+        point_lights=PointLights(position=[[0.0, 3.0, 20.0]], intensity=[[50.0] * 3]),
+    )
+    cam = Camera(40, 32, fov=60.0, focus_distance=5.0, aperture_radius=0.0)
+    ref = dofjax.render(scene, cam)
+    out = dofjax.render(to_float32(scene), to_float32(cam))
+    assert out.rgb.dtype == jnp.float32 and out.depth.dtype == jnp.float32
+    floor = np.isfinite(np.asarray(ref.depth))
+    assert floor.sum() > 300
+    np.testing.assert_allclose(np.asarray(out.rgb)[floor], np.asarray(ref.rgb)[floor], rtol=2e-4, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(out.depth)[floor], np.asarray(ref.depth)[floor], rtol=1e-5)
+    assert np.all(np.asarray(out.rgb)[floor] > 0.05 * 1.0 + 1e-4)  # every floor pixel is lit
+
+
+# ------------------------------------------------------------------------------------- mirrors
+def mirror_scene(bounces=1, background=(0.05, 0.05, 0.05)):
+    # Material 0: a 70 % mirror facing the camera at z = 10; material 1: an emissive card at z = 4,
+    # off to the side (world x in [0.5, 1.5]), which the camera sees only in the mirror.
+    return Scene(
+        materials=materials(
+            2,
+            ambient=[[0.2, 0.2, 0.2], [0.0, 0.0, 0.0]],
+            emission=[[0.0, 0.0, 0.0], [1.0, 0.5, 0.25]],
+            mirror=[0.7, 0.0],
+        ),
+        quads=Quads(
+            corner=[[-20.0, -20.0, 10.0], [0.5, -0.5, 4.0]],
+            edge_u=[[40.0, 0, 0], [1.0, 0, 0]],
+            edge_v=[[0, 40.0, 0], [0, 1.0, 0]],
+            material=[0, 1],
+        ),
+        background=background,
+        max_bounces=bounces,
+    )
+
+
+def test_mirror_shows_object_at_virtual_depth():
+    scene = mirror_scene()
+    cam = Camera(64, 64, fov=20.0, focus_distance=10.0, aperture_radius=0.0)
+    out = dofjax.render(scene, cam)
+    d = np.asarray(cam.pixel_directions())
+    x, y = d[..., 0], d[..., 1]
+    # Primary ray (x, y, 1) t: hits the mirror at t = 10, comes back along (x, y, -1) and crosses
+    # z = 4 at (16 x, 16 y): the card is seen in the mirror there, at virtual depth 10 + 6 = 16.
+    direct = (4 * x >= 0.5) & (4 * x <= 1.5) & (np.abs(4 * y) <= 0.5)
+    seen = (16 * x >= 0.5) & (16 * x <= 1.5) & (np.abs(16 * y) <= 0.5) & ~direct
+    # Stay a pixel away from the card's edges in the mirror (where rounding decides hit or miss).
+    margin = 16 * (np.tan(np.radians(10.0)) / 32) * 1.5
+    inner = (
+        (16 * x >= 0.5 + margin) & (16 * x <= 1.5 - margin) & (np.abs(16 * y) <= 0.5 - margin)
+    )
+    escapes = ~seen & ~direct & ((np.abs(16 * x - 1.0) > 0.5 + margin) | (np.abs(16 * y) > 0.5 + margin))
+    assert inner.sum() >= 8 and escapes.sum() > 100
+    np.testing.assert_allclose(np.asarray(out.depth)[seen], 10.0, rtol=1e-13)
+    # rtol 1e-9: the reflected ray starts ~1.5e-10 relative off the mirror (self-hit offset).
+    np.testing.assert_allclose(np.asarray(out.reflection_depth)[inner], 16.0, rtol=1e-9)
+    emit = np.array([1.0, 0.5, 0.25])
+    np.testing.assert_allclose(np.asarray(out.reflection)[inner], rows(0.7 * emit, inner), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.rgb)[inner], rows(0.06 + 0.7 * emit, inner), rtol=1e-12)
+    # Where the reflected ray escapes: the mirror shows the background, at infinite depth.
+    assert np.all(np.isinf(np.asarray(out.reflection_depth)[escapes]))
+    np.testing.assert_allclose(np.asarray(out.reflection)[escapes], 0.7 * 0.05, rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.rgb)[escapes], 0.3 * 0.2 + 0.7 * 0.05, rtol=1e-12)
+    # The card seen directly is not a mirror: no reflection there.
+    assert direct.sum() > 10
+    np.testing.assert_allclose(np.asarray(out.depth)[direct], 4.0, rtol=1e-13)
+    assert np.all(np.isinf(np.asarray(out.reflection_depth)[direct]))
+    np.testing.assert_allclose(np.asarray(out.reflection)[direct], 0.0)
+
+
+def test_two_bounces_between_parallel_mirrors():
+    # A second mirror at z = -2 behind the camera (facing +z): the ray escaping the first mirror now
+    # comes back: with bounces = 2, three mirror hits; beyond the last bounce radiance is black.
+    base = mirror_scene(bounces=2, background=(0.0, 0.0, 0.0))
+    q = base.quads
+    quads = Quads(
+        corner=jnp.concatenate([q.corner, jnp.asarray([[-20.0, -20.0, -2.0]])]),
+        edge_u=jnp.concatenate([q.edge_u, jnp.asarray([[40.0, 0, 0]])]),
+        edge_v=jnp.concatenate([q.edge_v, jnp.asarray([[0, 40.0, 0]])]),
+        material=[0, 1, 0],
+    )
+    scene = Scene(materials=base.materials, quads=quads, max_bounces=2)
+    out = dofjax.trace(scene, jnp.zeros(3), jnp.asarray([[0.0, 0.0, 1.0]]))
+    # Three surfaces (mirror z = 10, mirror z = -2, mirror z = 10), the third one truncated.
+    local = 0.2
+    expected = 0.3 * local + 0.7 * (0.3 * local + 0.7 * (0.3 * local))
+    np.testing.assert_allclose(out.rgb[0], expected, rtol=1e-12)
+    np.testing.assert_allclose(out.reflection[0], expected - 0.3 * local, rtol=1e-12)
+    # First reflected path: 10 back to the mirror at z = -2 -> 12; virtual t = 10 + 12.
+    assert float(out.reflection_t[0]) == pytest.approx(22.0, rel=1e-9)
+
+
+# ------------------------------------------------------------------------------------- layers
+def test_layers_peel_quad_sphere_and_plane():
+    scene = Scene(
+        materials=materials(
+            3, emission=[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], mirror=[0.0, 0.0, 0.0]
+        ),
+        quads=Quads(corner=[[0.0, -0.6, 3.0]], edge_u=[[1.0, 0, 0]], edge_v=[[0, 1.2, 0]], material=[0]),
+        spheres=Spheres(center=[[-1.0, 0.0, 6.0]], radius=[1.0], material=[1]),
+        planes=plane_z(9.0, material=2),
+        background=[0.25, 0.25, 0.25],
+    )
+    cam = Camera(32, 24, fov=50.0, focus_distance=5.0, aperture_radius=0.0)
+    out = dofjax.render(scene, cam, layers=4)
+    lay = out.layers
+    assert lay.rgb.shape == (4, 24, 32, 3) and lay.depth.shape == (4, 24, 32)
+    # Layer 0 is exactly the single-layer render.
+    np.testing.assert_array_equal(lay.rgb[0], out.rgb)
+    np.testing.assert_array_equal(lay.depth[0], out.depth)
+    # Closed-form hits along every pixel-centre ray, sorted: quad, sphere front and back, plane.
+    d = np.asarray(cam.pixel_directions()).reshape(-1, 3)
+    x, y = d[:, 0] * 3.0, d[:, 1] * 3.0
+    quad = np.where((x >= 0) & (x <= 1) & (np.abs(y) <= 0.6), 3.0, np.inf)
+    c = np.array([-1.0, 0.0, 6.0])
+    a, b, cc = (d * d).sum(1), -2 * d @ c, c @ c - 1.0
+    disc = b * b - 4 * a * cc
+    sq = np.sqrt(np.maximum(disc, 0))
+    s0 = np.where(disc > 0, (-b - sq) / (2 * a), np.inf)
+    s1 = np.where(disc > 0, (-b + sq) / (2 * a), np.inf)
+    hits = np.sort(np.stack([quad, s0, s1, np.full_like(s0, 9.0)], axis=1), axis=1)
+    # Skip rays that graze the sphere or touch the quad edge (rounding decides those).
+    clean = (np.abs(disc) > 1e-3) & (np.abs(x) > 1e-3) & (np.abs(x - 1) > 1e-3) & (
+        np.abs(np.abs(y) - 0.6) > 1e-3
+    )
+    got = np.asarray(lay.depth).reshape(4, -1).T
+    np.testing.assert_allclose(got[clean], hits[clean], rtol=1e-10)
+    np.testing.assert_array_equal(np.asarray(lay.alpha).reshape(4, -1).T, np.isfinite(got) * 1.0)
+    # Colours: behind the quad, layer 1 is what the render shows with the quad removed.
+    behind = clean & (quad == 3.0) & np.isinf(s0)
+    assert behind.sum() > 5
+    rgb1 = np.asarray(lay.rgb[1]).reshape(-1, 3)
+    np.testing.assert_allclose(rgb1[behind], [[0.0, 0.0, 1.0]] * behind.sum())
+    # Fewer surfaces than layers: background colour, alpha 0, depth inf.
+    rgb3 = np.asarray(lay.rgb[3]).reshape(-1, 3)
+    none = clean & np.isinf(hits[:, 3])
+    np.testing.assert_allclose(rgb3[none], 0.25)
+    assert np.all(np.asarray(lay.alpha[3]).reshape(-1)[none] == 0.0)
+    # The quad-in-front-of-plane case: layer 1 depth is the plane's depth behind the quad.
+    np.testing.assert_allclose(got[behind, 1], 9.0, rtol=1e-13)
+
+
+# ------------------------------------------------------------------------------------- spp
+def test_sample_offsets():
+    np.testing.assert_allclose(
+        _raycast.sample_offsets(4), [[0.25, 0.25], [0.75, 0.25], [0.25, 0.75], [0.75, 0.75]]
+    )
+    np.testing.assert_allclose(_raycast.sample_offsets(1), [[0.5, 0.5]])
+    five = np.asarray(_raycast.sample_offsets(5))
+    assert five.shape == (5, 2) and np.all((five >= 0) & (five < 1))
+    np.testing.assert_array_equal(five, _raycast.sample_offsets(5))  # deterministic
+    assert len({tuple(p) for p in five.round(6)}) == 5
+
+
+def test_supersampling_averages_colour_keeps_centre_depth():
+    # An emissive card at z = 2 whose edge crosses pixel column 16 at its centre (x offset 0.5):
+    # the 2 x 2 strata at 0.25 / 0.75 see it half the time.
+    e = np.array([1.0, 0.8, 0.6])
+    scene = Scene(
+        materials=materials(emission=list(e)),
+        quads=Quads(
+            corner=[[-0.0625, -10.0, 2.0]], edge_u=[[20.0, 0, 0]], edge_v=[[0, 20.0, 0]], material=[0]
+        ),
+        background=[0.1, 0.1, 0.1],
+    )
+    cam = Camera(32, 8, fov=90.0, focus_distance=2.0, aperture_radius=0.0)
+    one = dofjax.render(scene, cam)
+    four = dofjax.render(scene, cam, spp=4)
+    np.testing.assert_allclose(four.rgb[:, 15], np.broadcast_to(e, (8, 3)), rtol=1e-12)
+    np.testing.assert_allclose(four.rgb[:, 16], np.broadcast_to(0.5 * e + 0.05, (8, 3)), rtol=1e-12)
+    np.testing.assert_allclose(four.rgb[:, 17], 0.1, rtol=1e-12)
+    np.testing.assert_array_equal(four.depth, one.depth)
+    np.testing.assert_allclose(one.depth[:, :16], 2.0, rtol=1e-13)
+    # A non-square spp works too and lands between the pure colours.
+    three = dofjax.render(scene, cam, spp=3)
+    assert np.all((three.rgb[:, 16] >= 0.1 - 1e-12) & (three.rgb[:, 16] <= e + 1e-12))
+
+
+# ------------------------------------------------------------------------------------- compile
+def test_values_do_not_recompile_structure_does():
+    scene = Scene(
+        materials=materials(2, diffuse=[0.5] * 3, mirror=[0.0, 0.5]),
+        spheres=Spheres(center=[[0.0, 0.0, 5.0]], radius=[1.0], material=[0]),
+        planes=plane_z(8.0, material=1),
+        point_lights=PointLights(position=[[1.0, 2.0, 0.0]], intensity=[[5.0] * 3]),
+        max_bounces=1,
+    )
+    cam = Camera(16, 12, fov=40.0, focus_distance=5.0, aperture_radius=0.1)
+    first = dofjax.render(scene, cam)
+    count = _raycast._render_traces
+    variants = [
+        (eqx.tree_at(lambda s: s.materials.diffuse, scene, scene.materials.diffuse * 0.3), cam),
+        (eqx.tree_at(lambda s: s.spheres.center, scene, scene.spheres.center + 0.2), cam),
+        (eqx.tree_at(lambda s: s.point_lights.intensity, scene, scene.point_lights.intensity * 2), cam),
+        (eqx.tree_at(lambda s: s.materials.mirror, scene, jnp.asarray([0.3, 0.9])), cam),
+        (scene, cam.replace(focus_distance=2.0, aperture_radius=0.5)),
+        (scene, cam.replace(eye=jnp.asarray([0.1, 0.2, -0.5]), fov=55.0)),
+    ]
+    outs = [dofjax.render(s, c) for s, c in variants]
+    assert _raycast._render_traces == count  # six value changes, no retrace
+    # ... and the values really changed the image (the guard is not vacuous).
+    for out in outs[:4] + outs[5:]:
+        assert not np.allclose(out.rgb, first.rgb)
+    np.testing.assert_array_equal(outs[4].rgb, first.rgb)  # focus/aperture: sharp render unchanged
+    # Static structure does recompile.
+    dofjax.render(scene, cam, layers=2)
+    assert _raycast._render_traces == count + 1
+
+
+def test_absent_features_trace_no_code(monkeypatch):
+    calls = {}
+
+    def counting(name, fn):
+        def wrapped(*args):
+            calls[name] = calls.get(name, 0) + 1
+            return fn(*args)
+
+        return wrapped
+
+    for name, (t_fn, hit_fn) in list(_intersect.PRIMITIVES.items()):
+        monkeypatch.setitem(_intersect.PRIMITIVES, name, (counting(name, t_fn), hit_fn))
+    monkeypatch.setattr(_raycast, "_texture", counting("texture", _raycast._texture))
+    o = jnp.zeros((5, 3))
+    d = jnp.ones((5, 3))
+
+    def traced_calls(scene):
+        calls.clear()
+        jax.make_jaxpr(lambda o, d: _raycast._radiance(scene, o, d, _raycast._tmin(o, d)))(o, d)
+        return dict(calls)
+
+    sphere = Spheres(center=[[0.0, 0.0, 5.0]], radius=[1.0], material=[0])
+    light = PointLights(position=[[1.0, 2.0, 0.0]], intensity=[[5.0] * 3])
+    # Only the present type, once: no lights -> no shadow rays, no mirrors -> no secondary rays.
+    assert traced_calls(Scene(materials=materials(), spheres=sphere)) == {"spheres": 1}
+    # One light: one more (shadow) query.
+    assert traced_calls(Scene(materials=materials(), spheres=sphere, point_lights=light)) == {
+        "spheres": 2
+    }
+    # Mirrors: the bounce level (a scan body, traced once) adds its own primary + shadow queries.
+    many = traced_calls(
+        Scene(materials=materials(), spheres=sphere, point_lights=light, max_bounces=3)
+    )
+    assert many == {"spheres": 4}
+    tex = Scene(
+        materials=materials(texture=0),
+        spheres=sphere,
+        textures=jnp.ones((1, 4, 4, 3)),
+    )
+    assert traced_calls(tex) == {"spheres": 1, "texture": 1}
+
+
+# ------------------------------------------------------------------------------------- misc
+def test_textured_quad_and_plane_bilinear_orientation():
+    tex = np.zeros((1, 2, 2, 3))
+    tex[0, 0, 0] = [1.0, 0.0, 0.0]  # top-left
+    tex[0, 0, 1] = [0.0, 1.0, 0.0]  # top-right
+    tex[0, 1, 0] = [0.0, 0.0, 1.0]  # bottom-left
+    tex[0, 1, 1] = [1.0, 1.0, 1.0]  # bottom-right
+    scene = Scene(
+        materials=materials(2, ambient=[1.0, 1.0, 1.0], texture=[0, 0]),
+        quads=Quads(corner=[[-1.0, -1.0, 2.0]], edge_u=[[2.0, 0, 0]], edge_v=[[0, 2.0, 0]], material=[0]),
+        planes=plane_z(5.0, material=1),
+        textures=jnp.asarray(tex),
+    )
+    # Quad UV (s, t) = ((x + 1) / 2, (y + 1) / 2): texel centres at s, t in {0.25, 0.75}; t = 0.75
+    # is the top row. Plane UV = (x mod 1, y mod 1) at z = 5, so (3.25, 0.75) is texel (0, 0) too.
+    pts = np.array(
+        [[-0.5, 0.5, 2.0], [0.5, 0.5, 2.0], [-0.5, -0.5, 2.0], [0.0, 0.0, 2.0], [3.25, 0.75, 5.0],
+         [3.75, -1.75, 5.0]]
+    )
+    out = dofjax.trace(scene, jnp.zeros(3), jnp.asarray(pts))
+    np.testing.assert_allclose(out.t, 1.0, rtol=1e-12)  # directions end on the surfaces
+    np.testing.assert_allclose(out.rgb[0], tex[0, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(out.rgb[1], tex[0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(out.rgb[2], tex[0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(out.rgb[3], tex[0].mean(axis=(0, 1)), atol=1e-12)
+    np.testing.assert_allclose(out.rgb[4], tex[0, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(out.rgb[5], tex[0, 1, 1], atol=1e-12)  # (.75, -1.75 mod 1 = .25)
+
+
+def test_misses_are_background_without_nan_float32():
+    scene = to_float32(mirror_scene(bounces=1, background=(0.3, 0.2, 0.1)))
+    scene = eqx.tree_at(lambda s: s.quads.corner, scene, scene.quads.corner + jnp.asarray([0, 0, -30.0], jnp.float32))
+    cam = to_float32(Camera(24, 16, fov=60.0, focus_distance=5.0, aperture_radius=0.0))
+    out = dofjax.render(scene, cam, spp=4, layers=2)  # everything is behind the camera now
+    for x in jax.tree.leaves(out):
+        assert x.dtype == jnp.float32
+        assert not np.any(np.isnan(np.asarray(x)))
+    assert np.all(np.isinf(out.depth)) and np.all(np.isinf(out.reflection_depth))
+    np.testing.assert_allclose(out.rgb, np.broadcast_to([0.3, 0.2, 0.1], out.rgb.shape), rtol=1e-6)
+    np.testing.assert_array_equal(out.reflection, 0.0)
+    assert np.all(out.layers.alpha == 0.0)
+
+
+def test_chunking_matches_unchunked():
+    scene = phong_scene()
+    rng = np.random.default_rng(1)
+    d = jnp.asarray(rng.normal(size=(1000, 3)) * [0.2, 0.2, 1.0] + [0, 0, 2.0])
+    o = jnp.zeros((1000, 3))
+
+    def fn(o, d):
+        return _raycast._radiance(scene, o, d, _raycast._tmin(o, d))
+
+    whole = jax.jit(fn)(o, d)
+    chunked = jax.jit(lambda o, d: _raycast._chunked(fn, 256, o, d))(o, d)  # 4 chunks, padded
+    for a, b in zip(whole, chunked, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-15)
+    assert np.isfinite(np.asarray(whole[1])).sum() > 100
+
+
+def test_trace_shapes_and_bad_arguments():
+    scene = phong_scene()
+    out = dofjax.trace(scene, jnp.zeros(3), jnp.ones((2, 4, 3)))
+    assert out.rgb.shape == (2, 4, 3) and out.t.shape == (2, 4)
+    assert out.reflection is None and out.reflection_t is None
+    with pytest.raises(ValueError, match="last axis of size 3"):
+        dofjax.trace(scene, jnp.zeros(2), jnp.ones((4, 2)))
+    cam = Camera(8, 8, fov=40.0, focus_distance=5.0, aperture_radius=0.0)
+    with pytest.raises(ValueError, match="spp must be an integer >= 1, got 0"):
+        dofjax.render(scene, cam, spp=0)
+    with pytest.raises(ValueError, match="layers must be None or an integer >= 1, got 0"):
+        dofjax.render(scene, cam, layers=0)
+    with pytest.raises(ValueError, match="spp"):
+        dofjax.render(scene, cam, spp=2.5)
