@@ -5,6 +5,12 @@ and recover focus distance and aperture from a blurred image.
 """
 
 from ._camera import Camera as Camera, coc_radius as coc_radius
+from ._defocus import (
+    DefocusInfo as DefocusInfo,
+    DefocusWarning as DefocusWarning,
+    defocus as defocus,
+    defocus_fn as defocus_fn,
+)
 from ._io import (
     read_exr as read_exr,
     read_exr_layers as read_exr_layers,

@@ -1,0 +1,646 @@
+"""Depth-of-field from sharp RGB-D: the differentiable, occlusion-aware soft-disc defocus.
+
+DESIGN.md section 3 defines what is computed; this module is how.
+
+Algorithm (a layered pyramid):
+
+1. Every source pixel q (of every layer) has a signed CoC c(q) = A k (1/z - 1/d) (`coc_radius`)
+   and a smoothly floored kernel radius rho = sqrt(c^2 + R0^2), R0 = 0.5 px.
+2. Radius levels m_0 = 0 < m_1 < ... < m_n = window (two per octave, `_kernels.MAGNITUDES`) and
+   their signs give depth slices, ordered front to back: +m_n ... +m_1, 0, -m_1 ... -m_n. A source
+   is split between the two slices that bracket it, with weights linear in the second moment of
+   its own soft kernel (so the blend's
+   second moment is exactly that of the source's own kernel, and the weights are smooth in c at
+   c = 0: the gradient exists on the focal plane).
+3. Each slice holds premultiplied colour and coverage (split into the part in front of and behind
+   the slice's level) and is convolved with its level's soft kernel (normalised by its discrete
+   sum). Levels with large radius run at 1/2, 1/4, ... resolution with kernels shrunk so the
+   blur's second moment is still right: every convolution is a small (<= 9x9 for the disc)
+   shift-and-add.
+4. Slices are composited front to back with additive coverage, T_p = clip(1 - occluders, 0, 1),
+   where the occluders of slice p are all slices nearer than p - 1 plus the front part of
+   p - 1 (a source never occludes itself across its two slices), and the result is normalised by
+   the composited coverage. So a nearer blurred surface spreads over what lies behind it and a
+   farther one never spreads over a nearer sharp one.
+5. What a blurred foreground edge uncovers: peeled `layers` if given; for single-layer RGB-D an
+   explicit hidden-background layer (pull-push fill of the locally farthest pixels, placed behind
+   pixels that are > 1-2 px of CoC nearer than the farthest surface within the window).
+6. Mirrors: the reflected radiance is a separate, additive source blurred at its own virtual depth;
+   the mirror surface keeps the rest of the colour at the mirror's depth.
+
+All of it is smooth jnp maths on fixed shapes, so forward- and reverse-mode derivatives w.r.t.
+`focus_distance`, `aperture_radius` and the colours cost a small multiple of the forward pass.
+
+Entry points:
+
+- `defocus(rgb, depth, camera, ...)` / `defocus(rgbd, camera, ...)`: the user-facing call. Without
+  `window=`, it validates the input on the host, returns the input unchanged when there is nothing
+  to blur (aperture 0 or every |c| < 0.25 px), picks the window from the image's largest |c|
+  (bucketed to the level magnitudes, so nearby values share one compilation), and warns (and
+  reports in `DefocusInfo`) when a |c| beyond the largest supported window (128 px) is clamped.
+  With a static `window=` (px) it is a pure function and can be called under `jax.jit`/`vmap`.
+- **`defocus_fn(rgb, depth, camera, *, window=..., ...)` -> `f(focus_distance, aperture_radius)`**:
+  the jittable entry point for fitting. It validates the image once, fixes the window (|c| above
+  it is clamped to it), and returns a pure function of the two scalars, safe to `jax.jit`,
+  `jax.vmap` over starts, and differentiate (`jacfwd`, `grad`) inside optimistix solvers.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike
+
+from ._camera import Camera
+from ._kernels import (
+    MAX_WINDOW,
+    R0,
+    bucket_window,
+    conv_taps,
+    down2,
+    make_plan,
+    moment_table,
+    up2,
+)
+from ._numerics import inverse_depth, safe_div
+from ._rgbd import RGBD, Layers
+
+SKIP_COC = 0.25  # px: below this everywhere, blurring changes nothing visible
+
+
+class DefocusWarning(UserWarning):
+    """A CoC larger than the supported window was clamped."""
+
+
+@dataclass(frozen=True)
+class DefocusInfo:
+    """What `defocus(..., return_info=True)` did.
+
+    Attributes:
+        max_abs_coc: largest |c| in the image (px), None when not computable (traced inputs).
+        window: the static window used (px), None when the blur was skipped.
+        skipped: True when the input was returned unchanged (aperture 0 or all |c| < 0.25 px).
+        clamped: True when some |c| exceeded the window and was clamped to it.
+        levels: number of signed radius levels (depth slices) the blur ran.
+    """
+
+    max_abs_coc: float | None
+    window: float | None
+    skipped: bool
+    clamped: bool
+    levels: int
+
+
+@dataclass(frozen=True)
+class _Config:
+    window: float
+    blades: int | None
+    rotation: float
+    ratio: float
+    hidden: bool  # estimate the hidden background (single-layer input)
+    mirror: bool
+
+
+# ---------------------------------------------------------------------------------------------
+# host-side validation
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _check_finite(name: str, x) -> None:
+    if _is_concrete(x):
+        a = np.asarray(x)
+        if not np.all(np.isfinite(a)):
+            bad = int(np.size(a) - np.count_nonzero(np.isfinite(a)))
+            raise ValueError(f"defocus: {name} must be finite, found {bad} NaN/inf value(s)")
+
+
+def _check_depth(name: str, z) -> None:
+    if _is_concrete(z):
+        a = np.asarray(z)
+        if np.any(np.isnan(a)):
+            raise ValueError(f"defocus: {name} contains NaN")
+        if np.any(a <= 0):
+            raise ValueError(
+                f"defocus: {name} must be > 0 (z-depth in front of the lens, +inf for "
+                f"background), got min {float(a.min())!r}"
+            )
+
+
+def _shape_config(shape, blades, rotation, ratio):
+    if shape not in ("disc", "polygon"):
+        raise ValueError(f"defocus: shape must be 'disc' or 'polygon', got {shape!r}")
+    if shape == "disc":
+        if blades is not None:
+            raise ValueError(f"defocus: blades={blades!r} needs shape='polygon'")
+        rotation = 0.0
+    else:
+        if isinstance(blades, bool) or not isinstance(blades, int | np.integer) or blades < 3:
+            raise ValueError(f"defocus: shape='polygon' needs blades >= 3, got {blades!r}")
+        blades = int(blades)
+    ratio = float(ratio)
+    if not (math.isfinite(ratio) and 0.1 <= ratio <= 10.0):
+        raise ValueError(f"defocus: ratio (anamorphic width/height) must be in [0.1, 10], got {ratio!r}")
+    rotation = float(rotation)
+    if not math.isfinite(rotation):
+        raise ValueError(f"defocus: rotation must be finite, got {rotation!r}")
+    return blades, rotation, ratio
+
+
+def _validate(rgb, depth, camera, reflection, reflection_depth, layers):
+    if not isinstance(camera, Camera):
+        raise TypeError(f"defocus: camera must be a dofjax.Camera, got {type(camera).__name__}")
+    if rgb.ndim != 3 or rgb.shape[-1] != 3:
+        raise ValueError(f"defocus: rgb must have shape (H, W, 3), got {rgb.shape}")
+    h, w = rgb.shape[:2]
+    if depth.shape != (h, w):
+        raise ValueError(f"defocus: depth shape {depth.shape} does not match rgb shape {rgb.shape}")
+    if (camera.height, camera.width) != (h, w):
+        raise ValueError(
+            f"defocus: camera is {camera.width}x{camera.height} (width x height) but the image is "
+            f"{w}x{h}"
+        )
+    _check_finite("rgb", rgb)
+    _check_depth("depth", depth)
+    if _is_concrete(camera.aperture_radius):
+        a = float(camera.aperture_radius)
+        if not (math.isfinite(a) and a >= 0):
+            raise ValueError(f"defocus: camera.aperture_radius must be >= 0, got {a!r}")
+    if _is_concrete(camera.focus_distance):
+        d = float(camera.focus_distance)
+        if not (math.isfinite(d) and d > 0):
+            raise ValueError(f"defocus: camera.focus_distance must be > 0, got {d!r}")
+    if (reflection is None) != (reflection_depth is None):
+        raise ValueError("defocus: reflection and reflection_depth must be given together")
+    if reflection is not None:
+        if reflection.shape != rgb.shape:
+            raise ValueError(
+                f"defocus: reflection shape {reflection.shape} does not match rgb {rgb.shape}"
+            )
+        if reflection_depth.shape != (h, w):
+            raise ValueError(
+                f"defocus: reflection_depth shape {reflection_depth.shape} does not match "
+                f"depth {depth.shape}"
+            )
+        _check_finite("reflection", reflection)
+        _check_depth("reflection_depth", reflection_depth)
+    if layers is not None:
+        if not isinstance(layers, Layers):
+            raise TypeError(f"defocus: layers must be a dofjax Layers, got {type(layers).__name__}")
+        k = layers.depth.shape[0] if layers.depth.ndim == 3 else None
+        if (
+            layers.depth.shape != (k, h, w)
+            or layers.rgb.shape != (k, h, w, 3)
+            or layers.alpha.shape != (k, h, w)
+        ):
+            raise ValueError(
+                f"defocus: layers must be rgb (K, {h}, {w}, 3), depth and alpha (K, {h}, {w}); got "
+                f"{layers.rgb.shape}, {layers.depth.shape}, {layers.alpha.shape}"
+            )
+        _check_finite("layers.rgb", layers.rgb)
+        _check_finite("layers.alpha", layers.alpha)
+        _check_depth("layers.depth", layers.depth)
+        if _is_concrete(layers.alpha):
+            a = np.asarray(layers.alpha)
+            if a.min() < 0 or a.max() > 1:
+                raise ValueError(
+                    f"defocus: layers.alpha must be in [0, 1], got [{a.min()}, {a.max()}]"
+                )
+
+
+# ---------------------------------------------------------------------------------------------
+# the jitted core
+
+
+def _min_filter(x, radius: int):
+    """Separable square min filter of half-size `radius` px (edges: the window is clipped)."""
+    if radius <= 0:
+        return x
+    big = jnp.asarray(jnp.finfo(x.dtype).max, x.dtype)
+    for axis in (0, 1):
+        dims = [1, 1]
+        dims[axis] = 2 * radius + 1
+        pad = [(0, 0), (0, 0)]
+        pad[axis] = (radius, radius)
+        x = jax.lax.reduce_window(x, big, jax.lax.min, tuple(dims), (1, 1), pad)
+    return x
+
+
+def _pull_push(values, weight):
+    """Fill values (C, H, W) where weight (H, W) in [0, 1] is small from nearby weighted pixels.
+
+    Gortler et al. 1996 pull-push: a weighted mean pyramid (pull), then each level keeps its own
+    value in proportion to its weight and takes the upsampled coarser fill for the rest (push).
+    """
+    c, h, w = values.shape
+    size = 1
+    while size < max(h, w):
+        size *= 2
+    v = jnp.pad(values * weight, ((0, 0), (0, size - h), (0, size - w)))
+    wt = jnp.pad(weight, ((0, size - h), (0, size - w)))
+    pyr = []
+    while True:
+        pyr.append((v, wt))
+        if v.shape[-1] == 1:
+            break
+        v4 = down2(v) * 4.0
+        w4 = down2(wt) * 4.0
+        # normalise so a level's weight stays in [0, 1] (a fully covered block has weight 1)
+        scale = jnp.minimum(w4, 1.0) / jnp.maximum(w4, 1e-12)
+        v, wt = v4 * scale, jnp.minimum(w4, 1.0)
+    fill = safe_div(pyr[-1][0], pyr[-1][1])
+    for v, wt in reversed(pyr[:-1]):
+        own = safe_div(v, wt)
+        fill = wt * own + (1.0 - wt) * up2(fill)
+    return fill[:, :h, :w]
+
+
+def _hidden_layer(rgb_c, c, window: float):
+    """Single-layer RGB-D: an explicit estimate of what lies behind foreground pixels.
+
+    A pixel counts as foreground (weight h -> 1) when its CoC is more than 1-2 px nearer than the
+    farthest CoC within `window` px; the hidden colour and CoC are pull-push fills of the other
+    pixels (the locally far ones), so they sit behind the foreground and get occluded by it.
+    """
+    c_far = _min_filter(c, int(math.ceil(window)))
+    t = jnp.clip(c - c_far - 1.0, 0.0, 1.0)
+    h = t * t * (3.0 - 2.0 * t)  # C1 smoothstep
+    fill = _pull_push(jnp.concatenate([rgb_c, c[None]], axis=0), 1.0 - h)
+    return fill[:3], fill[3], h
+
+
+def _slice_weights(c, plan, table, dtype):
+    """Per-slice weights (S, H, W) and 'in front of the slice level' masks for CoC map c (H, W).
+
+    A source with CoC c is split between the two levels bracketing it, linearly in the second
+    moment t(q) of its own soft kernel (q = c^2 + R0^2, `_kernels.moment_table`), so the blend
+    blurs exactly as much as the source's disc would; t depends on c^2 only, so the weights are
+    smooth (zero slope) on the focal plane.
+    """
+    mags = np.asarray(plan.magnitudes)
+    tq, tm = table
+    t_lv = np.interp(mags**2 + R0**2, tq, tm)
+    n = len(mags) - 1
+    sign, a_r, b_r, a_f, b_f, tmid = [], [], [], [], [], []
+    for lv in plan.levels:
+        j = int(np.argmin(np.abs(mags - abs(lv.coc))))
+        sign.append(np.sign(lv.coc))
+        tmid.append(t_lv[j])
+        if j > 0:  # rising edge from the level below
+            a = 1.0 / (t_lv[j] - t_lv[j - 1])
+            a_r.append(a)
+            b_r.append(-t_lv[j - 1] * a)
+        else:
+            a_r.append(0.0)
+            b_r.append(1.0)
+        if j < n:  # falling edge to the level above; the top level takes all larger |c|
+            a = -1.0 / (t_lv[j + 1] - t_lv[j])
+            a_f.append(a)
+            b_f.append(-t_lv[j + 1] * a)
+        else:
+            a_f.append(0.0)
+            b_f.append(1.0)
+
+    def col(v):
+        return jnp.asarray(np.asarray(v, dtype=np.float64), dtype)[:, None, None]
+
+    sign, a_r, b_r, a_f, b_f, tmid = map(col, (sign, a_r, b_r, a_f, b_f, tmid))
+    q = c * c + R0 * R0
+    t = jnp.interp(q, jnp.asarray(tq, dtype), jnp.asarray(tm, dtype))[None]
+    w = jnp.clip(a_r * t + b_r, 0.0, 1.0) * jnp.clip(a_f * t + b_f, 0.0, 1.0)
+    near = (c >= 0)[None]
+    side = jnp.where(sign > 0, near, jnp.where(sign < 0, ~near, True))
+    w = jnp.where(side, w, 0.0)
+    front = jnp.where(sign > 0, t >= tmid, jnp.where(sign < 0, t < tmid, near))
+    return w, front
+
+
+def _pyramid_blur(x, plan):
+    """Convolve slice stack x (S, C, H, W) with each level's kernel, big levels at low resolution."""
+    scales = sorted({lv.scale for lv in plan.levels})
+    cur, cur_scale = x, 1
+    cur_idx = list(range(len(plan.levels)))
+    results = []
+    for s in scales:
+        while cur_scale < s:  # mean-pool only the slices that still need a coarser scale
+            cur, cur_scale = down2(cur), cur_scale * 2
+        here = [k for k, i in enumerate(cur_idx) if plan.levels[i].scale == s]
+        idx = [cur_idx[k] for k in here]
+        y = conv_taps(cur[np.asarray(here)], tuple(plan.levels[i].kernel for i in idx))
+        results.append((s, idx, y))
+        keep = [k for k, i in enumerate(cur_idx) if plan.levels[i].scale > s]
+        if keep:
+            cur = cur[np.asarray(keep)]
+        cur_idx = [cur_idx[k] for k in keep]
+    # back to full resolution, coarsest first, sharing the upsampling between scales
+    acc, acc_idx, acc_scale = None, [], None
+    for s, idx, y in reversed(results):
+        if acc is not None:
+            while acc_scale > s:
+                acc, acc_scale = up2(acc), acc_scale // 2
+            acc = jnp.concatenate([acc, y], axis=0)
+        else:
+            acc, acc_scale = y, s
+        acc_idx = acc_idx + idx
+    while acc_scale > 1:
+        acc, acc_scale = up2(acc), acc_scale // 2
+    order = np.argsort(np.asarray(acc_idx))
+    return acc[order]
+
+
+@partial(jax.jit, static_argnames=("config",))
+def _core(rgb, inv, alpha, refl, refl_inv, focus_distance, aperture_radius, pixel_scale, config):
+    """Defocus of sources rgb (L, H, W, 3), inverse depth inv (L, H, W), coverage alpha (L, H, W).
+
+    refl/refl_inv: (H, W, 3)/(H, W) mirror radiance and its inverse virtual depth (or dummies when
+    config.mirror is False). Returns (image (H, W, 3), max |c| over all sources).
+    """
+    plan = make_plan(config.window, config.blades, config.rotation, config.ratio)
+    table = moment_table(config.blades, config.rotation, config.ratio)
+    dtype = rgb.dtype
+    big = jnp.asarray(config.window, dtype)
+    coc_scale = aperture_radius * pixel_scale
+
+    def coc(inv_depth):
+        c = coc_scale * (inv_depth - 1.0 / focus_distance)
+        return c, jnp.clip(c, -big, big)
+
+    L, h, w, _ = rgb.shape
+    rgb_c = jnp.moveaxis(rgb, -1, 1)  # (L, 3, H, W)
+    c_raw, c = coc(inv)
+    max_abs = jnp.max(jnp.abs(c_raw))
+    srcs = [(rgb_c[i], c[i], alpha[i]) for i in range(L)]
+    if config.hidden:
+        h_rgb, h_c, h_a = _hidden_layer(rgb_c[0], c[0], config.window)
+        srcs.append((h_rgb, h_c, h_a))
+
+    col = 0.0
+    a_front = 0.0
+    a_back = 0.0
+    for s_rgb, s_c, s_a in srcs:
+        wts, front = _slice_weights(s_c, plan, table, dtype)
+        wa = wts * s_a[None]
+        col = col + wa[:, None] * s_rgb[None]
+        a_front = a_front + jnp.where(front, wa, 0.0)
+        a_back = a_back + jnp.where(front, 0.0, wa)
+    chans = [col, a_front[:, None], a_back[:, None]]
+    if config.mirror:
+        r_c, r_cl = coc(refl_inv)
+        max_abs = jnp.maximum(max_abs, jnp.max(jnp.abs(r_c)))
+        wr, _ = _slice_weights(r_cl, plan, table, dtype)
+        chans.append(wr[:, None] * jnp.moveaxis(refl, -1, 0)[None])
+    x = jnp.concatenate(chans, axis=1)  # (S, C, H, W)
+
+    m = plan.max_scale
+    hp, wp = -(-h // m) * m, -(-w // m) * m
+    x = jnp.pad(x, ((0, 0), (0, 0), (0, hp - h), (0, wp - w)))
+    y = _pyramid_blur(x, plan)[:, :, :h, :w]
+
+    b, af, ab = y[:, :3], y[:, 3], y[:, 4]
+    a = af + ab
+    excl = jnp.cumsum(a, axis=0) - a  # coverage of all slices strictly in front
+    occl = jnp.concatenate([jnp.zeros_like(a[:1]), excl[:-1] + af[:-1]], axis=0)
+    t = jnp.clip(1.0 - occl, 0.0, 1.0)
+    num = jnp.sum(t[:, None] * b, axis=0)
+    den = jnp.sum(t * a, axis=0)
+    out = num / jnp.maximum(den, 1e-6)[None]
+    if config.mirror:
+        out = out + jnp.sum(y[:, 5:8], axis=0)
+    return jnp.moveaxis(out, 0, -1), max_abs
+
+
+# ---------------------------------------------------------------------------------------------
+# public API
+
+
+def _sources(rgb, depth, reflection, layers, dtype):
+    """Stack the sources the core blurs: (rgb, inverse depth, alpha), each with a leading L axis."""
+    if layers is None:
+        surf = rgb if reflection is None else rgb - reflection
+        return surf[None], inverse_depth(depth)[None], jnp.ones((1,) + depth.shape, dtype)
+    lrgb = jnp.asarray(layers.rgb, dtype)
+    if reflection is not None:  # layer 0's colour includes the mirror's reflected radiance
+        lrgb = lrgb.at[0].add(-reflection)
+    return lrgb, inverse_depth(jnp.asarray(layers.depth, dtype)), jnp.asarray(layers.alpha, dtype)
+
+
+def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blades, rotation, ratio):
+    dtype = rgb.dtype
+    src_rgb, src_inv, src_a = _sources(rgb, depth, reflection, layers, dtype)
+    mirror = reflection is not None
+    if mirror:
+        refl = reflection
+        refl_inv = inverse_depth(reflection_depth)
+    else:
+        refl = jnp.zeros((1, 1, 3), dtype)
+        refl_inv = jnp.zeros((1, 1), dtype)
+    config = _Config(float(window), blades, rotation, ratio, layers is None, mirror)
+    return _core(
+        src_rgb, src_inv, src_a, refl, refl_inv,
+        jnp.asarray(camera.focus_distance, dtype), jnp.asarray(camera.aperture_radius, dtype),
+        jnp.asarray(camera.pixel_scale, dtype), config,
+    )
+
+
+def _as_array(x, dtype=None):
+    if x is None:
+        return None
+    x = jnp.asarray(x)
+    if dtype is None:
+        dtype = x.dtype if jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float)
+    return x.astype(dtype)
+
+
+def defocus(
+    rgb: ArrayLike | RGBD,
+    depth: ArrayLike | Camera,
+    camera: Camera | None = None,
+    *,
+    shape: str = "disc",
+    blades: int | None = None,
+    rotation: float = 0.0,
+    ratio: float = 1.0,
+    reflection: ArrayLike | None = None,
+    reflection_depth: ArrayLike | None = None,
+    layers: Layers | None = None,
+    window: float | None = None,
+    return_info: bool = False,
+) -> Array | tuple[Array, DefocusInfo]:
+    """The image a thin lens takes of a sharp RGB-D render (DESIGN.md section 3).
+
+    Call as `defocus(rgb, depth, camera, ...)` or `defocus(rgbd, camera, ...)` (an `RGBD` from
+    `render` supplies reflection, reflection_depth and peeled layers).
+
+    Args:
+        rgb: (H, W, 3) sharp linear colour (float32 or float64; the result has the same dtype).
+        depth: (H, W) z-depth in world units, > 0, +inf for background.
+        camera: focus_distance, aperture_radius and pixel scale; its width/height must be W/H.
+        shape: "disc" or "polygon" (then `blades` >= 3 and `rotation` in radians, counter-clockwise,
+            0 puts a vertex on +x). Near-field (c > 0) kernels are the point reflection of far ones.
+        ratio: anamorphic width / height of the aperture (1 = round).
+        reflection, reflection_depth: (H, W, 3) radiance seen through mirrors (included in rgb)
+            and its virtual z-depth; it is blurred at that depth instead of the mirror's.
+        layers: peeled surfaces (K, H, W, ...) from `render(..., layers=K)`: used instead of rgb and
+            the hidden-background estimate, so blurred foreground edges uncover real surfaces.
+        window: static largest |c| (px) to support; rounded up to a level magnitude (1, 2, 3, 4, 6,
+            8, 12, ..., 128); |c| beyond it is clamped to it. None: chosen from the image (host
+            check; not possible under jit). Give it to call `defocus` inside `jax.jit`/`vmap`.
+        return_info: also return a `DefocusInfo`.
+
+    Returns:
+        (H, W, 3) defocused linear colour (and the info when asked).
+
+    Raises:
+        ValueError: shape mismatches, non-finite colours, depth <= 0 or NaN, negative aperture,
+            bad shape parameters. A clamped CoC is a `DefocusWarning`, not an error.
+    """
+    if isinstance(rgb, RGBD):
+        if camera is not None:
+            raise TypeError("defocus(rgbd, camera): pass the camera as the second argument only")
+        rgbd, camera = rgb, depth
+        rgb, depth = rgbd.rgb, rgbd.depth
+        reflection = rgbd.reflection if reflection is None else reflection
+        reflection_depth = rgbd.reflection_depth if reflection_depth is None else reflection_depth
+        layers = rgbd.layers if layers is None else layers
+    elif camera is None:
+        raise TypeError("defocus: call as defocus(rgb, depth, camera) or defocus(rgbd, camera)")
+    blades, rotation, ratio = _shape_config(shape, blades, rotation, ratio)
+    rgb = _as_array(rgb)
+    dtype = rgb.dtype
+    depth = _as_array(depth, dtype)
+    reflection = _as_array(reflection, dtype)
+    reflection_depth = _as_array(reflection_depth, dtype)
+    _validate(rgb, depth, camera, reflection, reflection_depth, layers)
+
+    concrete = all(
+        _is_concrete(v)
+        for v in (rgb, depth, camera.aperture_radius, camera.focus_distance, camera.fov)
+    ) and (layers is None or _is_concrete(layers.depth))
+    max_abs = None
+    if concrete:
+        zs = [np.asarray(depth)]
+        if layers is not None:
+            zs.append(np.asarray(layers.depth)[np.asarray(layers.alpha) > 0])
+        if reflection_depth is not None:
+            zs.append(np.asarray(reflection_depth))
+        inv = np.concatenate([1.0 / np.ravel(z).astype(np.float64) for z in zs])
+        ak = float(camera.aperture_radius) * float(camera.pixel_scale)
+        max_abs = float(np.max(np.abs(ak * (inv - 1.0 / float(camera.focus_distance)))))
+    if window is None:
+        if max_abs is None:
+            raise ValueError(
+                "defocus: under jax.jit/vmap the window cannot be chosen from the image; pass a "
+                "static window=<largest |CoC| in px> (or use dofjax.defocus_fn)"
+            )
+        if float(camera.aperture_radius) == 0.0 or max_abs < SKIP_COC:
+            out = rgb
+            info = DefocusInfo(max_abs, None, True, False, 1)
+            return (out, info) if return_info else out
+        win = bucket_window(max_abs)
+    else:
+        window = float(window)
+        if not (math.isfinite(window) and window > 0):
+            raise ValueError(f"defocus: window must be > 0 px, got {window!r}")
+        win = bucket_window(window)
+    clamped = max_abs is not None and max_abs > win
+    if clamped:
+        warnings.warn(
+            f"defocus: the largest CoC radius is {max_abs:.4g} px but the window is {win:g} px "
+            f"(supported maximum {MAX_WINDOW:g}); larger blurs are clamped to the window",
+            DefocusWarning,
+            stacklevel=2,
+        )
+    out, _ = _run(rgb, depth, camera, reflection, reflection_depth, layers, win, blades, rotation,
+                  ratio)
+    if return_info:
+        plan = make_plan(win, blades, rotation, ratio)
+        return out, DefocusInfo(max_abs, win, False, clamped, len(plan.levels))
+    return out
+
+
+def defocus_fn(
+    rgb: ArrayLike | RGBD,
+    depth: ArrayLike | Camera,
+    camera: Camera | None = None,
+    *,
+    window: float | None = None,
+    shape: str = "disc",
+    blades: int | None = None,
+    rotation: float = 0.0,
+    ratio: float = 1.0,
+    reflection: ArrayLike | None = None,
+    reflection_depth: ArrayLike | None = None,
+    layers: Layers | None = None,
+):
+    """A pure, jittable `f(focus_distance, aperture_radius) -> (H, W, 3)` for fitting.
+
+    The image, depth, field of view and shape are validated once here (host) and closed over;
+    `f` runs only the jitted defocus core with a fixed window, so it can be `jax.jit`-ed,
+    `jax.vmap`-ped over many (focus, aperture) starts and differentiated in forward and reverse
+    mode inside optimistix solvers without recompiling. It never returns the input unblurred as
+    a shortcut (at aperture 0 the core gives the identity anyway) and never warns.
+
+    Args:
+        rgb, depth, camera: as `defocus` (or an `RGBD` and a camera). The camera supplies the pixel
+            scale (fov, width); its focus and aperture are only used to choose the window when
+            `window` is None.
+        window: largest |c| (px) the solver may reach (e.g. from its bounds on u = 1/d and A:
+            `A_max * k * max|1/z - u|`), rounded up to a level magnitude; larger |c| is clamped
+            to it (call `f.max_abs_coc(focus, aperture)` to check). None: 2x the camera's |c|.
+        shape, blades, rotation, ratio, reflection, reflection_depth, layers: as `defocus`.
+
+    Returns:
+        f(focus_distance, aperture_radius): world units (scalars or 0-d arrays) -> image. The
+        function also has `.window` (px) and `.max_abs_coc(focus, aperture)` (jittable).
+    """
+    if isinstance(rgb, RGBD):
+        rgbd, camera = rgb, depth
+        rgb, depth = rgbd.rgb, rgbd.depth
+        reflection = rgbd.reflection if reflection is None else reflection
+        reflection_depth = rgbd.reflection_depth if reflection_depth is None else reflection_depth
+        layers = rgbd.layers if layers is None else layers
+    blades, rotation, ratio = _shape_config(shape, blades, rotation, ratio)
+    rgb = _as_array(rgb)
+    dtype = rgb.dtype
+    depth = _as_array(depth, dtype)
+    reflection = _as_array(reflection, dtype)
+    reflection_depth = _as_array(reflection_depth, dtype)
+    _validate(rgb, depth, camera, reflection, reflection_depth, layers)
+    if window is None:
+        c = np.abs(np.asarray(jnp.asarray(_coc_host(depth, camera))))
+        window = max(2.0 * float(c.max()), 1.0)
+    window = float(window)
+    if not (math.isfinite(window) and window > 0):
+        raise ValueError(f"defocus_fn: window must be > 0 px, got {window!r}")
+    win = bucket_window(window)
+    pixel_scale = camera.pixel_scale
+
+    def _cam(focus_distance, aperture_radius):
+        return camera.replace(focus_distance=focus_distance, aperture_radius=aperture_radius)
+
+    def f(focus_distance, aperture_radius):
+        out, _ = _run(rgb, depth, _cam(focus_distance, aperture_radius), reflection,
+                      reflection_depth, layers, win, blades, rotation, ratio)
+        return out
+
+    def max_abs_coc(focus_distance, aperture_radius):
+        inv = inverse_depth(depth)
+        return jnp.max(jnp.abs(aperture_radius * pixel_scale * (inv - 1.0 / focus_distance)))
+
+    f.window = win
+    f.max_abs_coc = max_abs_coc
+    return f
+
+
+def _coc_host(depth, camera):
+    from ._camera import coc_radius
+
+    return coc_radius(depth, camera)
