@@ -204,7 +204,7 @@ def _encode_metadata(path: str, metadata: Mapping[str, Any] | None) -> list[tupl
         raise ValueError(f"{path}: metadata must be a dict, got {type(metadata).__name__}")
     out = []
     for name, value in metadata.items():
-        if not isinstance(name, str) or not _NAME_RE.match(name):
+        if not isinstance(name, str) or not _NAME_RE.fullmatch(name):
             raise ValueError(
                 f"{path}: metadata name {name!r} is invalid: use letters, digits, '_', '.', '-' "
                 "(starting with a letter or '_', at most 200 characters, no 'dofjax:' prefix)"
@@ -422,7 +422,7 @@ def write_exr(
         _check_depth(path, "depth", depth)
         planes.append(("Z", depth))
     for name, value in (extra or {}).items():
-        if not isinstance(name, str) or not _LAYER_RE.match(name) or name in _RESERVED_LAYERS:
+        if not isinstance(name, str) or not _LAYER_RE.fullmatch(name) or name in _RESERVED_LAYERS:
             raise ValueError(
                 f"{path}: extra layer name {name!r} is invalid: use letters, digits and '_' "
                 f"(at most 64 characters), not one of {_RESERVED_LAYERS}"

@@ -3,12 +3,15 @@ previews checked against the IEC 61966-2-1 formula, linear reads of any image, a
 
 from __future__ import annotations
 
+import json
 import math
 
 import jax.numpy as jnp
 import numpy as np
 import OpenImageIO as oiio
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import dofjax
 from dofjax._io import srgb_decode, srgb_encode
@@ -342,6 +345,8 @@ def test_write_exr_errors(tmp_path):
         (dict(extra={"x": rgb * np.nan}), r"extra\['x'\] must be finite"),
         (dict(metadata={"a:b": 1}), "metadata name 'a:b' is invalid"),
         (dict(metadata={"": 1}), "metadata name '' is invalid"),
+        (dict(metadata={"a\n": 1}), r"metadata name 'a\\n' is invalid"),
+        (dict(extra={"a\n": depth}), r"extra layer name 'a\\n' is invalid"),
         (dict(metadata={"x": object()}), "metadata 'x': cannot store a value of type object"),
         (dict(metadata={"x": {1: 2}}), "metadata 'x': dict keys must be strings"),
         (dict(metadata=[("a", 1)]), "metadata must be a dict"),
@@ -414,3 +419,33 @@ def test_write_into_missing_directory_and_no_leftovers(tmp_path):
     dofjax.write_png(tmp_path / "a.png", rgb)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.exr", "a.png"]
     assert dofjax.read_exr(tmp_path / "a.exr")[1] is not None
+
+
+_scalars = (
+    st.none()
+    | st.booleans()
+    | st.integers(min_value=-(2**60), max_value=2**60)
+    | st.floats(allow_nan=False)
+    | st.text(max_size=20)
+)
+_values = st.recursive(
+    _scalars,
+    lambda inner: st.lists(inner, max_size=4)
+    | st.dictionaries(st.text(max_size=5), inner, max_size=4),
+    max_leaves=12,
+)
+
+
+_names = st.from_regex(r"[A-Za-z_][A-Za-z0-9_.\-]{0,30}", fullmatch=True)
+
+
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(meta=st.dictionaries(_names, _values, max_size=6))
+def test_exr_metadata_round_trip_property(tmp_path, meta):
+    dofjax.write_exr(tmp_path / "h.exr", np.zeros((1, 1, 3), np.float32), metadata=meta)
+    back = dofjax.read_exr_metadata(tmp_path / "h.exr")
+    assert back == meta
+    # Equal values of the same type (1 == 1.0 == True would hide a type change).
+    assert json.dumps(back, sort_keys=True) == json.dumps(meta, sort_keys=True)
