@@ -19,6 +19,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", default=None, help="image size WxH, overrides config.size")
     parser.add_argument("--dry-run", action="store_true", help="print the plan, render nothing")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument("--jax-cache", default=None, metavar="DIR",
+                        help="JAX persistent compilation cache directory, shared by workers and "
+                        "runs (saves 10-40 s of compiling per scene kind per process)")
     args = parser.parse_args(argv)
 
     from ._config import ConfigError, load_config, parse_size
@@ -41,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     try:
         summary = run(args.out, args.count, args.seed, cfg, workers=args.workers,
-                      progress=not args.no_progress)
+                      progress=not args.no_progress, jax_cache_dir=args.jax_cache)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
