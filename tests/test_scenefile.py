@@ -635,10 +635,12 @@ def test_scene_to_dict_needs_texture_specs():
 
 
 @pytest.mark.parametrize("name", ["spheres", "quads", "mirror", "mesh", "boxes"])
-def test_examples_load(name):
+def test_examples_load(name, tmp_path):
     path = EXAMPLES / f"{name}.json"
     scene = load_scene(path)
     cam = load_camera(path)
+    save_scene(scene, tmp_path / "copy.json", camera=cam)
+    assert_scenes_equal(scene, load_scene(tmp_path / "copy.json"))
     assert cam is not None and cam.width >= 64
     counts = scene.primitive_counts
     assert 8 <= sum(counts.values()) <= 40, counts
