@@ -190,8 +190,8 @@ def _radiance(scene: Scene, o, d, tmin):
     levels: colour = (1 - mirror) * local + mirror * (radiance of the reflected ray).
 
     Radiance beyond the last bounce is truncated to black (as a path tracer's depth limit does).
-    The mirror recursion runs as a `lax.scan` over bounce levels, so its code is compiled once
-    whatever `max_bounces` is.
+    With mirrors, all levels (the primary hit included) run as one `lax.scan` over bounce levels,
+    so the shading code is compiled once whatever `max_bounces` is.
 
     Returns (rgb, t, reflection, reflection_t); reflection is zero and reflection_t +inf when
     `scene.max_bounces == 0`.
@@ -203,61 +203,57 @@ def _radiance(scene: Scene, o, d, tmin):
     inf = jnp.full((n_rays,), jnp.inf, dtype=dtype)
     if not scene.primitive_counts:  # a scene with no primitives: every ray escapes
         return background, inf, zeros3, inf
-    t, is_hit, p, normal, local, mirror = _shade_hits(scene, o, d, tmin)
-    rgb = jnp.where(is_hit[:, None], (1.0 - mirror)[:, None] * local, background)
     if scene.max_bounces == 0:
+        t, is_hit, _, _, local, mirror = _shade_hits(scene, o, d, tmin)
+        rgb = jnp.where(is_hit[:, None], (1.0 - mirror)[:, None] * local, background)
         return rgb, t, zeros3, inf
 
-    def reflect(p, normal, d):
-        r_o = _offset(p, normal)
-        r_d = d - 2.0 * _dot(d, normal)[:, None] * normal  # |r_d| = |d|: t stays in units of |d|
-        return r_o, r_d, _tmin(r_o, r_d)
-
-    def level(carry, _):
-        o, d, tmin, weight, alive, acc = carry
+    def level(carry, primary):
+        o, d, tmin, weight, alive, direct, reflection = carry
         t, is_hit, p, normal, local, mirror = _shade_hits(scene, o, d, tmin)
         here = jnp.where(is_hit[:, None], (1.0 - mirror)[:, None] * local, background)
-        acc = acc + jnp.where(alive[:, None], weight * here, 0.0)
-        r_o, r_d, r_tmin = reflect(p, normal, d)
-        carry = (r_o, r_d, r_tmin, weight * mirror[:, None], alive & is_hit, acc)
-        return carry, t
+        here = jnp.where(alive[:, None], weight * here, 0.0)
+        direct = direct + jnp.where(primary, here, 0.0)
+        reflection = reflection + jnp.where(primary, 0.0, here)
+        r_o = _offset(p, normal)
+        r_d = d - 2.0 * _dot(d, normal)[:, None] * normal  # |r_d| = |d|: t stays in units of |d|
+        weight = weight * mirror[:, None]
+        carry = (r_o, r_d, _tmin(r_o, r_d), weight, alive & is_hit, direct, reflection)
+        return carry, (t, mirror)
 
-    # Level 1 onwards: what the first surface's mirror shows, weighted by the mirror chain.
-    start = reflect(p, normal, d) + (mirror[:, None] * jnp.ones((1, 3), dtype), is_hit, zeros3)
-    (*_, reflection), ts = jax.lax.scan(level, start, None, length=scene.max_bounces)
-    r_t = ts[0]
+    ones = jnp.ones((n_rays, 3), dtype=dtype)
+    start = (o, d, tmin, ones, jnp.ones((n_rays,), dtype=bool), zeros3, zeros3)
+    primary = jnp.arange(scene.max_bounces + 1) == 0
+    (*_, direct, reflection), (ts, mirrors) = jax.lax.scan(level, start, primary)
+    t, r_t, mirror = ts[0], ts[1], mirrors[0]
     # Virtual depth t1 + L2/|d1|: the reflected direction has the primary's length, so L2/|d1| is
     # just the reflected ray's own parameter.
+    seen = jnp.isfinite(t) & (mirror > 0) & jnp.isfinite(r_t)
     reflection_t = jnp.where(
-        is_hit & (mirror > 0) & jnp.isfinite(r_t),
-        jnp.where(is_hit, t, 0.0) + jnp.where(jnp.isfinite(r_t), r_t, 0.0),
-        jnp.inf,
+        seen, jnp.where(seen, t, 0.0) + jnp.where(seen, r_t, 0.0), jnp.inf
     )
-    return rgb + reflection, t, reflection, reflection_t
+    return direct + reflection, t, reflection, reflection_t
 
 
 def _peel(scene: Scene, o, d, layers: int):
     """The first `layers` surfaces along each ray: each layer restarts beyond the previous hit.
 
-    Returns (rgb, t, reflection, reflection_t) with a layer axis at position 1.
+    Returns (rgb, t, reflection, reflection_t) with a layer axis at position 1. The layers run as
+    one `lax.scan` (shading compiled once); layer 0 is exactly `_radiance` from the ray origin.
     """
     base = _tmin(o, d)
-    first = _radiance(scene, o, d, base)
     if layers == 1:
-        return tuple(x[:, None] for x in first)
+        return tuple(x[:, None] for x in _radiance(scene, o, d, base))
     rel = _eps_scale(d.dtype)
 
-    def layer(t_prev, _):
+    def layer(tmin, _):
+        out = _radiance(scene, o, d, tmin)
         # Relative plus absolute epsilon: skips the surface just found (and rounding of its t)
         # without skipping a distinct surface farther than ~eps^(2/3) relative.
-        out = _radiance(scene, o, d, t_prev * (1.0 + rel) + base)
-        return out[1], out
+        return out[1] * (1.0 + rel) + base, out
 
-    _, rest = jax.lax.scan(layer, first[1], None, length=layers - 1)
-    return tuple(
-        jnp.concatenate([f[:, None], jnp.moveaxis(r, 0, 1)], axis=1)
-        for f, r in zip(first, rest, strict=True)
-    )
+    _, outs = jax.lax.scan(layer, base, None, length=layers)
+    return tuple(jnp.moveaxis(x, 0, 1) for x in outs)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -373,21 +369,31 @@ def _render(scene: Scene, camera: Camera, spp: int, layers: int | None) -> RGBD:
     d = camera.pixel_directions().reshape(-1, 3)
     o = jnp.broadcast_to(camera.eye.astype(dtype), d.shape)
     n_layers = 1 if layers is None else layers
-    rgb, t, refl, refl_t = _chunked(lambda o, d: _peel(scene, o, d, n_layers), chunk, o, d)
-    colour, reflection = rgb[:, 0], refl[:, 0]
+
+    def radiance(o, d):
+        return _radiance(scene, o, d, _tmin(o, d))
+
+    if spp == 1 or layers is not None:
+        rgb, t, refl, refl_t = _chunked(lambda o, d: _peel(scene, o, d, n_layers), chunk, o, d)
+        colour, reflection = rgb[:, 0], refl[:, 0]
     if spp > 1:
         # Colour is averaged over the strata; depth (and the reflection's depth) stays the pixel
         # centre's, so it is an exact z-depth and never a blend of two surfaces.
         ds = camera.pixel_directions(sample_offsets(spp, dtype))  # (spp, H, W, 3)
-        ds = jnp.moveaxis(ds, 0, 2).reshape(-1, 3)
-        os = jnp.broadcast_to(camera.eye.astype(dtype), ds.shape)
-
-        def fn(o, d):
-            return _radiance(scene, o, d, _tmin(o, d))
-
-        s_rgb, _, s_refl, _ = _chunked(fn, chunk, os, ds)
-        colour = s_rgb.reshape(h * w, spp, 3).mean(axis=1)
-        reflection = s_refl.reshape(h * w, spp, 3).mean(axis=1)
+        ds = jnp.moveaxis(ds, 0, 2).reshape(h * w, spp, 3)
+        if layers is None:  # the centre ray rides along with the samples: one shading program
+            ds = jnp.concatenate([d[:, None, :], ds], axis=1)
+        n_rays = ds.shape[1]
+        os = jnp.broadcast_to(camera.eye.astype(dtype), (h * w * n_rays, 3))
+        s_rgb, s_t, s_refl, s_refl_t = _chunked(radiance, chunk, os, ds.reshape(-1, 3))
+        s_rgb = s_rgb.reshape(h * w, n_rays, 3)
+        s_refl = s_refl.reshape(h * w, n_rays, 3)
+        if layers is None:
+            t = s_t.reshape(h * w, n_rays)[:, :1]
+            refl_t = s_refl_t.reshape(h * w, n_rays)[:, :1]
+            s_rgb, s_refl = s_rgb[:, 1:], s_refl[:, 1:]
+        colour = s_rgb.mean(axis=1)
+        reflection = s_refl.mean(axis=1)
     mirrors = scene.max_bounces > 0
     peeled = None
     if layers is not None:
