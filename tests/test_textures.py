@@ -178,3 +178,10 @@ def test_cached_samples_are_returned_as_copies():
     first[:] = -1.0  # the caller owns its array; the cache must not change
     again = load_texture("skimage:coins", 8)
     assert again.min() >= 0.0 and again.flags.writeable
+
+
+def test_png_16bit_decoded_exactly(tmp_path):
+    codes = (np.arange(48, dtype=np.uint32) * 1365).astype(np.uint16).reshape(4, 4, 3)
+    write_image(tmp_path / "deep.png", codes, oiio.UINT16)
+    tex = load_texture(str(tmp_path / "deep.png"), 4)
+    np.testing.assert_array_equal(tex, srgb_to_linear(codes / 65535.0).astype(np.float32))
