@@ -136,7 +136,8 @@ class Scene(eqx.Module):
         ambient_light: (3,) ambient radiance multiplying each material's `ambient`.
         background: (3,) radiance of rays that hit nothing.
         max_bounces: static mirror recursion depth; 0 when no material is a mirror (set by
-            `scene_from_dict` / `load_scene` from the materials, so scenes without mirrors trace no secondary rays).
+            `scene_from_dict` / `load_scene` from the materials, so scenes without mirrors trace
+            no secondary rays).
     """
 
     materials: Materials
