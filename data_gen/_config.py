@@ -192,8 +192,10 @@ def validate_config(cfg: Mapping) -> dict:
     scene = cfg["scene"]
     _check_keys(scene, _SCENE_KEYS, "config.scene")
     dr = _range(scene["depth_range"], "config.scene.depth_range", allow_fixed=False)
-    if not dr[1] > dr[0]:
-        raise ConfigError(f"config.scene.depth_range: need lo < hi, got {dr}")
+    if not dr[1] >= 4.0 * dr[0]:
+        # The kinds place several surfaces at distinct depths between near and far (e.g. the
+        # background beyond sqrt(near * far), objects in front of 0.8 x the background).
+        raise ConfigError(f"config.scene.depth_range: need hi >= 4 lo, got {dr}")
     scene["depth_range"] = dr
     scene["texture_size"] = _int(scene["texture_size"], "config.scene.texture_size", 2)
     frac = _num(scene["skimage_fraction"], "config.scene.skimage_fraction")

@@ -435,13 +435,14 @@ def _check_generator_file(out_dir: str, seed: int, cfg: Mapping) -> None:
 
 
 def _remove_stale_temporaries(out_dir: str) -> None:
-    """Temporary files of an interrupted run (``*.tmp<pid>.*``)."""
+    """Temporary files of an interrupted run: ours (``*.tmp<pid>.*``) and dofjax.write_exr's
+    (``.*.partial.exr``)."""
     root = os.path.join(out_dir, "samples")
     if not os.path.isdir(root):
         return
     for dirpath, _, names in os.walk(root):
         for name in names:
-            if ".tmp" in name:
+            if ".tmp" in name or ".partial" in name:
                 os.remove(os.path.join(dirpath, name))
 
 
