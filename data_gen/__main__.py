@@ -1,4 +1,4 @@
-"""``python -m data_gen``: argparse over `data_gen.load_config`, `data_gen.dry_run`, `data_gen.run`."""
+"""``python -m data_gen``: a thin argparse layer over `load_config`, `dry_run` and `run`."""
 
 from __future__ import annotations
 

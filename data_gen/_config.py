@@ -35,7 +35,7 @@ CAMERA_MODELS = ("thin_lens", "photographic")
 _TOP_KEYS = ("size", "kinds", "scene", "camera", "target", "noise")
 _SCENE_KEYS = ("depth_range", "texture_size", "skimage_textures", "procedural_textures",
                "skimage_fraction")
-_TARGET_KEYS = ("method", "layers", "sharp_spp", "reference_spp")
+_TARGET_KEYS = ("method", "layers", "sharp_spp", "reference_spp", "window")
 _CAMERA_DEFAULTS = {
     "thin_lens": {
         "fov": [35.0, 60.0],
@@ -236,7 +236,9 @@ def validate_config(cfg: Mapping) -> dict:
         raise ConfigError(f"config.camera: must be a JSON object, got {cam!r}")
     model = cam.get("model")
     if model not in CAMERA_MODELS:
-        raise ConfigError(f"config.camera.model: must be one of {list(CAMERA_MODELS)}, got {model!r}")
+        raise ConfigError(
+            f"config.camera.model: must be one of {list(CAMERA_MODELS)}, got {model!r}"
+        )
     _check_keys(cam, ("model", *_CAMERA_DEFAULTS[model]), f"config.camera (model {model!r})")
     missing = sorted(set(_CAMERA_DEFAULTS[model]) - set(cam))
     if missing:
@@ -278,6 +280,13 @@ def validate_config(cfg: Mapping) -> dict:
     target["layers"] = _int(target["layers"], "config.target.layers", 1)
     target["sharp_spp"] = _int(target["sharp_spp"], "config.target.sharp_spp", 1)
     target["reference_spp"] = _int(target["reference_spp"], "config.target.reference_spp", 1)
+    if target.get("window") is not None:
+        target["window"] = _range(target["window"], "config.target.window", allow_fixed=True)
+        if isinstance(target["window"], list):
+            raise ConfigError(f"config.target.window: must be a number or null, got "
+                              f"{target['window']!r}")
+    else:
+        target["window"] = None
 
     noise = cfg["noise"]
     if not isinstance(noise, list) or not noise:
@@ -310,11 +319,14 @@ def validate_config(cfg: Mapping) -> dict:
                 entry[name] = _range(entry[name], f"{where}.{name}", lo_ok=lambda v: v >= 0,
                                      why=">= 0")
     if total <= 0:
-        raise ConfigError(f"config.noise: weights must sum to > 0, got {[e['weight'] for e in noise]}")
+        weights = [e["weight"] for e in noise]
+        raise ConfigError(f"config.noise: weights must sum to > 0, got {weights}")
     return cfg
 
 
-def load_config(source: str | Mapping | None = None, *, size: tuple[int, int] | None = None) -> dict:
+def load_config(
+    source: str | Mapping | None = None, *, size: tuple[int, int] | None = None
+) -> dict:
     """Load, merge over the defaults, apply a size override, and validate.
 
     Args:

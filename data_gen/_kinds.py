@@ -137,7 +137,7 @@ class _Builder:
                              "edge_v": _r(edge_v), "material": material})
 
     def rect(self, cx: float, cy: float, z: float, w: float, h: float, material: int) -> None:
-        """A fronto-parallel rectangle centred at (cx, cy, z), texture upright as seen by the camera.
+        """A fronto-parallel rectangle centred at (cx, cy, z), its texture upright in the image.
 
         The camera shows world +x on the image's left (DESIGN.md section 1), so edge_u points
         along -x for the texture's u to run left to right in the image.
@@ -202,7 +202,7 @@ def _half_extent(z: float, fov: float, aspect: float) -> tuple[float, float]:
 
 
 def _background_plane(b: _Builder, z: float, fov: float, aspect: float, scale=1.0) -> None:
-    """A fronto-parallel infinite plane at depth z, its texture tiling ~1-3 times across the view."""
+    """A fronto-parallel infinite plane at depth z, its texture tiling 1-3 times across the view."""
     hw, _ = _half_extent(z, fov, aspect)
     tiles = b.rng.uniform(1.0, 3.0)
     b.plane([0.0, 0.0, z], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0.0],

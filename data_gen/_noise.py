@@ -78,7 +78,8 @@ def srgb_encode(x: np.ndarray) -> np.ndarray:
 def srgb_decode(y: np.ndarray) -> np.ndarray:
     """sRGB -> linear transfer function (IEC 61966-2-1), for y in [0, 1]."""
     y = np.asarray(y, dtype=np.float64)
-    return np.where(y <= 0.04045, y / 12.92, np.power((np.maximum(y, 0.04045) + 0.055) / 1.055, 2.4))
+    linear = np.power((np.maximum(y, 0.04045) + 0.055) / 1.055, 2.4)
+    return np.where(y <= 0.04045, y / 12.92, linear)
 
 
 def quantize_srgb8(x: np.ndarray) -> np.ndarray:

@@ -229,8 +229,9 @@ def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = Non
         and aperture), ``rgbd`` (the sharp `RGBD`), ``clean`` (noise-free target, float32 numpy),
         ``target`` (noisy target), ``truth`` (what goes into the metadata and the manifest).
     """
-    import dofjax
     import jax
+
+    import dofjax
 
     clock = _Clock(timings)
     width, height = cfg["size"]
@@ -256,7 +257,9 @@ def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = Non
     camera = pinhole.replace(focus_distance=fa["focus_distance"],
                              aperture_radius=fa["aperture_radius"])
     if method == "defocus":
-        clean = dofjax.defocus(rgbd, camera)
+        # window None: defocus picks its kernel window from this image's largest blur (bucketed,
+        # one compile per bucket); a fixed window compiles once but every sample pays for it.
+        clean = dofjax.defocus(rgbd, camera, window=target_cfg["window"])
         spp = target_cfg["sharp_spp"]
     else:
         key = jax.random.key(sample_uint32(seed, index, "reference"))

@@ -92,6 +92,7 @@ def test_default_config_validates():
         ({"scene": {"procedural_textures": ["plaid"]}}, "unknown pattern 'plaid'"),
         ({"target": {"method": "magic"}}, "config.target.method: must be one of"),
         ({"target": {"layers": 0}}, "config.target.layers: must be an integer >= 1"),
+        ({"target": {"window": 0}}, "config.target.window: must be > 0"),
         ({"noise": []}, "config.noise: must be a non-empty list"),
         ({"noise": [{"model": "salt"}]}, "config.noise[0].model: must be one of"),
         ({"noise": [{"model": "gaussian"}]}, "missing parameter 'sigma'"),
