@@ -105,11 +105,11 @@ def end_to_end(size, count: int, workers: list[int], tmp: str) -> list[str]:
 
 
 def batching(size, batch: int, repeats: int = 5) -> list[str]:
-    import dofjax
     import jax
     import jax.numpy as jnp
 
     import data_gen
+    import dofjax
     from data_gen._kinds import make_scene
     from data_gen._noise import sample_rng
 
@@ -181,7 +181,8 @@ def main() -> None:
         f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs (shared), "
         f"jax {jax.__version__} on {jax.default_backend()}, float32; default config "
         "(defocus targets with 2 peeled layers, texture size 128), images "
-        f"{size[0]}x{size[1]}. Times in seconds, wall clock.",
+        f"{size[0]}x{size[1]}. Times in seconds, wall clock. Load average at the start: "
+        f"{os.getloadavg()[0]:.1f} (other jobs on the shared cores slow every number here).",
         "",
     ]
     with tempfile.TemporaryDirectory() as tmp:
@@ -202,6 +203,7 @@ def main() -> None:
                 "per-kind one times the number of cores.",
                 "",
             ]
+    lines.append(f"Load average at the end: {os.getloadavg()[0]:.1f}.")
     text = "\n".join(lines)
     print(text)
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)

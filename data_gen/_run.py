@@ -262,7 +262,8 @@ def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = Non
         clean = dofjax.defocus(rgbd, camera, window=target_cfg["window"])
         spp = target_cfg["sharp_spp"]
     else:
-        key = jax.random.key(sample_uint32(seed, index, "reference"))
+        key_seed = sample_uint32(seed, index, "reference")
+        key = jax.random.key(key_seed)
         spp = target_cfg["reference_spp"]
         clean = dofjax.render_reference(scene, camera, spp=spp, key=key)
     clean = np.asarray(clean, dtype=np.float32)
@@ -286,6 +287,8 @@ def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = Non
         "max_coc_px": fa["max_coc_px"],
         "aperture_capped": fa["aperture_capped"],
     }
+    if method == "reference":
+        truth["reference_key"] = key_seed  # the target is render_reference(..., key=key(this))
     if cfg["camera"]["model"] == "photographic":
         truth.update(focal_length=lens["focal_length"], sensor_width=lens["sensor_width"],
                      f_number=fa["f_number"])

@@ -306,6 +306,29 @@ def test_photographic_camera_metadata(tmp_path, small_cfg):
         assert meta["f_number"] == t["f_number"] and meta["focal_length"] == t["focal_length"]
 
 
+def test_reference_target(tmp_path):
+    import jax
+
+    import dofjax
+
+    if not hasattr(dofjax, "render_reference"):
+        pytest.skip("dofjax.render_reference has not landed yet")
+    cfg = load_config({**SMALL, "kinds": {"single_plane": 1.0}, "noise": [{"model": "none"}],
+                       "target": {"method": "reference", "reference_spp": 4}})
+    out = str(tmp_path / "ref")
+    run(out, 1, SEED, cfg, progress=False)
+    (r,) = read_manifest(out)
+    assert r["method"] == "reference"
+    rgb, _, meta = dofjax.read_exr(os.path.join(out, r["files"]["target"]))
+    assert meta["method"] == "reference" and meta["spp"] == 4
+    # The target is the lens-sampling reference of the saved scene and camera with the recorded key.
+    scene = dofjax.load_scene(os.path.join(out, r["files"]["scene"]))
+    cam = dofjax.load_camera(os.path.join(out, r["files"]["scene"]))
+    again = dofjax.render_reference(scene, cam, spp=4,
+                                    key=jax.random.key(r["truth"]["reference_key"]))
+    np.testing.assert_array_equal(np.asarray(again, np.float32), rgb)
+
+
 def test_scene_json_rerenders_to_the_sharp_image(dataset, small_cfg):
     import dofjax
 
