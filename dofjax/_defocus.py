@@ -65,6 +65,8 @@ from ._kernels import (
     conv_taps,
     down2,
     make_plan,
+    moment,
+    moment_np,
     moment_table,
     up2,
 )
@@ -221,17 +223,28 @@ def _validate(rgb, depth, camera, reflection, reflection_depth, layers):
 
 
 def _min_filter(x, radius: int):
-    """Separable square min filter of half-size `radius` px (edges: the window is clipped)."""
+    """Approximate min over a square neighbourhood of half-size ~`radius` px (at least radius/2,
+    at most 2 radius): min over blocks of size b ~ radius, then over the 3x3 neighbouring blocks.
+
+    Plain reductions and shifts only: jax's reduce_window-min breaks under jacfwd (vmap of its
+    JVP batches the primal).
+    """
     if radius <= 0:
         return x
-    big = jnp.asarray(jnp.finfo(x.dtype).max, x.dtype)
-    for axis in (0, 1):
-        dims = [1, 1]
-        dims[axis] = 2 * radius + 1
-        pad = [(0, 0), (0, 0)]
-        pad[axis] = (radius, radius)
-        x = jax.lax.reduce_window(x, big, jax.lax.min, tuple(dims), (1, 1), pad)
-    return x
+    b = 1
+    while 2 * b <= radius:
+        b *= 2
+    h, w = x.shape
+    hb, wb = -(-h // b), -(-w // b)
+    big = jnp.finfo(x.dtype).max
+    xp = jnp.pad(x, ((0, hb * b - h), (0, wb * b - w)), constant_values=big)
+    blocks = xp.reshape(hb, b, wb, b).min(axis=(1, 3))
+    bp = jnp.pad(blocks, 1, constant_values=big)
+    m = blocks
+    for dy in (0, 1, 2):
+        for dx in (0, 1, 2):
+            m = jnp.minimum(m, bp[dy: dy + hb, dx: dx + wb])
+    return jnp.repeat(jnp.repeat(m, b, axis=0), b, axis=1)[:h, :w]
 
 
 def _pull_push(values, weight):
@@ -281,68 +294,53 @@ def _slice_weights(c, plan, table, dtype):
     """Per-slice weights (S, H, W) and 'in front of the slice level' masks for CoC map c (H, W).
 
     A source with CoC c is split between the two levels bracketing it, linearly in the second
-    moment t(q) of its own soft kernel (q = c^2 + R0^2, `_kernels.moment_table`), so the blend
-    blurs exactly as much as the source's disc would; t depends on c^2 only, so the weights are
+    moment t(q) of its own soft kernel (q = c^2 + R0^2, `_kernels.moment`), so the blend blurs
+    exactly as much as the source's kernel would; t depends on c^2 only, so the weights are
     smooth (zero slope) on the focal plane.
     """
     mags = np.asarray(plan.magnitudes)
-    tq, tm = table
-    t_lv = np.interp(mags**2 + R0**2, tq, tm)
     n = len(mags) - 1
-    sign, a_r, b_r, a_f, b_f, tmid = [], [], [], [], [], []
-    for lv in plan.levels:
-        j = int(np.argmin(np.abs(mags - abs(lv.coc))))
-        sign.append(np.sign(lv.coc))
-        tmid.append(t_lv[j])
-        if j > 0:  # rising edge from the level below
-            a = 1.0 / (t_lv[j] - t_lv[j - 1])
-            a_r.append(a)
-            b_r.append(-t_lv[j - 1] * a)
-        else:
-            a_r.append(0.0)
-            b_r.append(1.0)
-        if j < n:  # falling edge to the level above; the top level takes all larger |c|
-            a = -1.0 / (t_lv[j + 1] - t_lv[j])
-            a_f.append(a)
-            b_f.append(-t_lv[j + 1] * a)
-        else:
-            a_f.append(0.0)
-            b_f.append(1.0)
-
-    def col(v):
-        return jnp.asarray(np.asarray(v, dtype=np.float64), dtype)[:, None, None]
-
-    sign, a_r, b_r, a_f, b_f, tmid = map(col, (sign, a_r, b_r, a_f, b_f, tmid))
-    q = c * c + R0 * R0
-    t = jnp.interp(q, jnp.asarray(tq, dtype), jnp.asarray(tm, dtype))[None]
-    w = jnp.clip(a_r * t + b_r, 0.0, 1.0) * jnp.clip(a_f * t + b_f, 0.0, 1.0)
-    near = (c >= 0)[None]
-    side = jnp.where(sign > 0, near, jnp.where(sign < 0, ~near, True))
-    w = jnp.where(side, w, 0.0)
-    front = jnp.where(sign > 0, t >= tmid, jnp.where(sign < 0, t < tmid, near))
-    return w, front
+    t_lv = moment_np(np.sqrt(mags**2 + R0**2), table)
+    t = moment(c * c + R0 * R0, table)
+    # bracket: t_lv[j] <= t < t_lv[j + 1]; beyond the top level everything goes to the top
+    j = jnp.zeros(c.shape, jnp.int32)
+    for m in range(1, n):
+        j = j + (t >= t_lv[m]).astype(jnp.int32)
+    tl = jnp.asarray(t_lv, dtype)
+    lo, hi = tl[j], tl[j + 1]
+    f = jnp.clip((t - lo) / (hi - lo), 0.0, 1.0)  # weight of the upper level
+    near = c >= 0
+    sgn = jnp.where(near, 1, -1)
+    # signed level index of each slice: slice p has magnitude index |k_p| and sign of k_p
+    ks = np.array([int(np.argmin(np.abs(mags - abs(lv.coc)))) * (1 if lv.coc > 0 else -1)
+                   for lv in plan.levels])
+    k = jnp.asarray(ks, jnp.int32)[:, None, None]
+    k_lo = jnp.where(j == 0, 0, sgn * j)[None]
+    k_hi = (sgn * (j + 1))[None]
+    w = jnp.where(k == k_lo, 1.0 - f, 0.0) + jnp.where(k == k_hi, f, 0.0)
+    # front part: the source is nearer than the slice's level. For the upper level of a near
+    # source that is never (unless clamped at the top); for the lower level always; mirrored
+    # for far sources. Level 0 takes near sources as front.
+    front = jnp.where(near[None], k == k_lo, k == k_hi)
+    return w.astype(dtype), front
 
 
-def _pyramid_blur(x, plan):
-    """Convolve slice stack x (S, C, H, W) with each level's kernel, big levels at low resolution."""
+def _scale_groups(plan):
+    """Slice indices per processing scale, finest first."""
     scales = sorted({lv.scale for lv in plan.levels})
-    cur, cur_scale = x, 1
-    cur_idx = list(range(len(plan.levels)))
-    results = []
-    for s in scales:
-        while cur_scale < s:  # mean-pool only the slices that still need a coarser scale
-            cur, cur_scale = down2(cur), cur_scale * 2
-        here = [k for k, i in enumerate(cur_idx) if plan.levels[i].scale == s]
-        idx = [cur_idx[k] for k in here]
-        y = conv_taps(cur[np.asarray(here)], tuple(plan.levels[i].kernel for i in idx))
-        results.append((s, idx, y))
-        keep = [k for k, i in enumerate(cur_idx) if plan.levels[i].scale > s]
-        if keep:
-            cur = cur[np.asarray(keep)]
-        cur_idx = [cur_idx[k] for k in keep]
-    # back to full resolution, coarsest first, sharing the upsampling between scales
+    return [(s, [i for i, lv in enumerate(plan.levels) if lv.scale == s]) for s in scales]
+
+
+def _pyramid_blur(groups, plan):
+    """Blur per-scale slice stacks; returns the list of full-resolution (C, H, W) slice results.
+
+    groups: [(scale, slice indices, stack (G, C, H/scale, W/scale))], finest first. Each coarse
+    group's result is upsampled together with the coarser groups' (shared 2x steps).
+    """
+    out = [None] * len(plan.levels)
     acc, acc_idx, acc_scale = None, [], None
-    for s, idx, y in reversed(results):
+    for s, idx, x in reversed(groups):
+        y = conv_taps(x, tuple(plan.levels[i].kernel for i in idx))
         if acc is not None:
             while acc_scale > s:
                 acc, acc_scale = up2(acc), acc_scale // 2
@@ -352,8 +350,17 @@ def _pyramid_blur(x, plan):
         acc_idx = acc_idx + idx
     while acc_scale > 1:
         acc, acc_scale = up2(acc), acc_scale // 2
-    order = np.argsort(np.asarray(acc_idx))
-    return acc[order]
+    for n, i in enumerate(acc_idx):
+        out[i] = acc[n]
+    return out
+
+
+def _pool(x, scale: int):
+    """Mean-pool the last two axes by `scale` (a power of two; sizes divisible by it)."""
+    if scale == 1:
+        return x
+    *lead, h, w = x.shape
+    return x.reshape(*lead, h // scale, scale, w // scale, scale).mean(axis=(-3, -1))
 
 
 @partial(jax.jit, static_argnames=("config",))
@@ -382,38 +389,59 @@ def _core(rgb, inv, alpha, refl, refl_inv, focus_distance, aperture_radius, pixe
         h_rgb, h_c, h_a = _hidden_layer(rgb_c[0], c[0], config.window)
         srcs.append((h_rgb, h_c, h_a))
 
-    col = 0.0
-    a_front = 0.0
-    a_back = 0.0
-    for s_rgb, s_c, s_a in srcs:
-        wts, front = _slice_weights(s_c, plan, table, dtype)
-        wa = wts * s_a[None]
-        col = col + wa[:, None] * s_rgb[None]
-        a_front = a_front + jnp.where(front, wa, 0.0)
-        a_back = a_back + jnp.where(front, 0.0, wa)
-    chans = [col, a_front[:, None], a_back[:, None]]
+    m = plan.max_scale
+    hp, wp = -(-h // m) * m, -(-w // m) * m
+
+    def padded(a):
+        pad = [(0, 0)] * (a.ndim - 2) + [(0, hp - h), (0, wp - w)]
+        return jnp.pad(a, pad)
+
+    weights = [_slice_weights(s_c, plan, table, dtype) + (s_rgb, s_a) for s_rgb, s_c, s_a in srcs]
     if config.mirror:
         r_c, r_cl = coc(refl_inv)
         max_abs = jnp.maximum(max_abs, jnp.max(jnp.abs(r_c)))
         wr, _ = _slice_weights(r_cl, plan, table, dtype)
-        chans.append(wr[:, None] * jnp.moveaxis(refl, -1, 0)[None])
-    x = jnp.concatenate(chans, axis=1)  # (S, C, H, W)
+        refl_c = jnp.moveaxis(refl, -1, 0)
 
-    m = plan.max_scale
-    hp, wp = -(-h // m) * m, -(-w // m) * m
-    x = jnp.pad(x, ((0, 0), (0, 0), (0, hp - h), (0, wp - w)))
-    y = _pyramid_blur(x, plan)[:, :, :h, :w]
+    groups = []
+    for s, idx in _scale_groups(plan):
+        sel = np.asarray(idx)
+        col = 0.0
+        a_front = 0.0
+        a_back = 0.0
+        for wts, front, s_rgb, s_a in weights:
+            wa = wts[sel] * s_a[None]
+            fr = front[sel]
+            col = col + wa[:, None] * s_rgb[None]
+            a_front = a_front + jnp.where(fr, wa, 0.0)
+            a_back = a_back + jnp.where(fr, 0.0, wa)
+        chans = [col, a_front[:, None], a_back[:, None]]
+        if config.mirror:
+            chans.append(wr[sel][:, None] * refl_c[None])
+        x = padded(jnp.concatenate(chans, axis=1))  # (G, C, Hp, Wp)
+        groups.append((s, idx, _pool(x, s)))
+    ys = [y[:, :h, :w] for y in _pyramid_blur(groups, plan)]
 
-    b, af, ab = y[:, :3], y[:, 3], y[:, 4]
-    a = af + ab
-    excl = jnp.cumsum(a, axis=0) - a  # coverage of all slices strictly in front
-    occl = jnp.concatenate([jnp.zeros_like(a[:1]), excl[:-1] + af[:-1]], axis=0)
-    t = jnp.clip(1.0 - occl, 0.0, 1.0)
-    num = jnp.sum(t[:, None] * b, axis=0)
-    den = jnp.sum(t * a, axis=0)
+    # front-to-back compositing with additive coverage (module docstring, step 4)
+    num = 0.0
+    den = 0.0
+    before_prev = 0.0  # coverage of all slices in front of the previous one
+    prev_a = 0.0
+    prev_front = 0.0
+    refl_sum = 0.0
+    for y in ys:
+        b, af, ab = y[:3], y[3], y[4]
+        a = af + ab
+        t = jnp.clip(1.0 - before_prev - prev_front, 0.0, 1.0)
+        num = num + t[None] * b
+        den = den + t * a
+        if config.mirror:
+            refl_sum = refl_sum + y[5:8]
+        before_prev = before_prev + prev_a
+        prev_a, prev_front = a, af
     out = num / jnp.maximum(den, 1e-6)[None]
     if config.mirror:
-        out = out + jnp.sum(y[:, 5:8], axis=0)
+        out = out + refl_sum
     return jnp.moveaxis(out, 0, -1), max_abs
 
 

@@ -16,6 +16,7 @@ import functools
 import math
 from dataclasses import dataclass
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -28,6 +29,7 @@ R0 = 0.5
 # A window (the largest |c| a compiled function supports) is always one of these values.
 MAGNITUDES = (0.0, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0, 48.0, 64.0, 96.0, 128.0)
 MAX_WINDOW = MAGNITUDES[-1]
+_COARSE = float(__import__("os").environ.get("DOFJAX_COARSE", "3"))
 
 
 def bucket_window(max_abs_coc: float) -> float:
@@ -104,7 +106,7 @@ def coarse_radius(rho: float, scale: int, blades, rotation, ratio) -> float:
     """
     if scale == 1:
         return rho
-    target = second_moment(soft_kernel(rho, blades, rotation, ratio)) - _pyramid_extra_moment(scale)
+    target = moment_np(rho, moment_table(blades, rotation, ratio)) - _pyramid_extra_moment(scale)
     target /= scale * scale
     lo, hi = 0.05, rho / scale + 1.0
     for _ in range(60):
@@ -117,31 +119,51 @@ def coarse_radius(rho: float, scale: int, blades, rotation, ratio) -> float:
 
 
 _TABLE_RHO_MAX = 12.0
+_TABLE_STEP = 0.02  # px of rho
 
 
 @functools.lru_cache(maxsize=64)
-def moment_table(blades, rotation: float, ratio: float) -> tuple[np.ndarray, np.ndarray]:
-    """(q, M2) samples of the soft kernel's second moment as a function of q = rho^2.
+def moment_table(blades, rotation: float, ratio: float) -> tuple[np.ndarray, float]:
+    """M2 of the soft kernel sampled at rho = R0, R0 + 0.02, ... 12 px, and the slope dM2/drho^2
+    beyond (where the continuum law M2 = rho^2/2 + const, for the disc, is exact enough).
 
     Sources are split between levels linearly in this moment (not in rho or rho^2): a blend of
     two kernels then has exactly the second moment of the source's own kernel, including the
-    soft edge and pixel discretisation that dominate at small radii. Beyond the table the
-    continuum law M2 = rho^2 / 2 (disc) plus the constant edge offset is exact enough.
+    soft edge and pixel discretisation that dominate at small radii.
     """
-    rhos = np.concatenate([np.arange(R0, 4.0, 0.01), np.arange(4.0, _TABLE_RHO_MAX + 1e-9, 0.05)])
+    rhos = R0 + _TABLE_STEP * np.arange(int(round((_TABLE_RHO_MAX - R0) / _TABLE_STEP)) + 1)
     m2 = np.array([second_moment(soft_kernel(float(r), blades, rotation, ratio)) for r in rhos])
     m2 = np.maximum.accumulate(m2)  # discretisation wiggles must not make it non-monotone
-    # extend with the asymptotic quadratic law (slope fitted on the table's last stretch)
     q = rhos * rhos
-    slope = (m2[-1] - m2[-40]) / (q[-1] - q[-40])
-    q_ext = np.array([(2 * MAX_WINDOW) ** 2 + R0 * R0])
-    m2_ext = m2[-1] + slope * (q_ext - q[-1])
-    return np.concatenate([q, q_ext]), np.concatenate([m2, m2_ext])
+    slope = float((m2[-1] - m2[-40]) / (q[-1] - q[-40]))
+    return m2, slope
 
 
-def moment_of_q(q: float, blades, rotation, ratio) -> float:
-    tq, tm = moment_table(blades, rotation, ratio)
-    return float(np.interp(q, tq, tm))
+def moment_np(rho, table) -> np.ndarray:
+    """Host version of `moment` (float64)."""
+    m2, slope = table
+    rho = np.asarray(rho, dtype=np.float64)
+    x = (rho - R0) / _TABLE_STEP
+    i = np.clip(np.floor(x), 0, len(m2) - 2).astype(int)
+    f = np.clip(x - i, 0.0, 1.0)
+    inner = m2[i] * (1 - f) + m2[i + 1] * f
+    outer = m2[-1] + slope * (rho * rho - _TABLE_RHO_MAX**2)
+    return np.where(rho <= _TABLE_RHO_MAX, inner, outer)
+
+
+def moment(q, table):
+    """Second moment (px^2) of the soft kernel of radius sqrt(q): linear interpolation on a
+    uniform rho grid (a gather, not a search), quadratic law beyond the table."""
+    m2, slope = table
+    dtype = q.dtype
+    rho = jnp.sqrt(q)  # q >= R0^2 > 0: no singular derivative
+    x = (rho - R0) / _TABLE_STEP
+    i = jnp.clip(jnp.floor(x), 0, len(m2) - 2).astype(jnp.int32)
+    f = jnp.clip(x - i, 0.0, 1.0)
+    tab = jnp.asarray(m2, dtype)
+    inner = tab[i] * (1 - f) + tab[i + 1] * f
+    outer = m2[-1] + slope * (q - _TABLE_RHO_MAX**2)
+    return jnp.where(rho <= _TABLE_RHO_MAX, inner, outer)
 
 
 @dataclass(frozen=True)
@@ -177,7 +199,7 @@ def make_plan(window: float, blades, rotation: float, ratio: float) -> Plan:
     down/up-sampling blur is a third of the kernel's and a textured image is 2x farther off.)
     """
     mags = tuple(m for m in MAGNITUDES if m <= window)
-    coarse_max = 3.0 if (blades is None and ratio == 1.0) else 4.0
+    coarse_max = _COARSE if (blades is None and ratio == 1.0) else 4.0
     pos = []
     for m in mags[1:]:
         s = _scale_for(m, coarse_max)
@@ -202,30 +224,38 @@ def make_plan(window: float, blades, rotation: float, ratio: float) -> Plan:
 def conv_taps(x, kernels: tuple[np.ndarray, ...]):
     """Per-slice 'same' convolution (zero padding) of x (G, C, h, w) with G small kernels.
 
-    Kernels may differ in size; taps that are zero in every kernel are skipped at trace time.
-    Correlation with the point-reflected kernel, i.e. true convolution (scatter semantics).
+    Slices sharing a kernel (e.g. +m and -m for a symmetric shape) are convolved together; each
+    group visits only its kernel's non-zero taps. True convolution (scatter semantics): the
+    source at p - d lands at p with weight k(d).
     """
-    g = len(kernels)
-    r = max(k.shape[0] // 2 for k in kernels)
-    if r == 0:
-        return x * jnp.asarray(np.array([k[0, 0] for k in kernels]), x.dtype)[:, None, None, None]
-    stack = np.zeros((g, 2 * r + 1, 2 * r + 1))
+    groups: dict[bytes, list[int]] = {}
     for i, k in enumerate(kernels):
-        h = k.shape[0] // 2
-        stack[i, r - h: r + h + 1, r - h: r + h + 1] = k
+        groups.setdefault(k.tobytes() + bytes(str(k.shape), "ascii"), []).append(i)
+    if len(groups) == 1 and len(kernels) == x.shape[0]:
+        return _conv_one(x, kernels[0])
+    outs = [None] * len(kernels)
+    for idx in groups.values():
+        y = _conv_one(x[np.asarray(idx)], kernels[idx[0]])
+        for n, i in enumerate(idx):
+            outs[i] = y[n]
+    return jnp.stack(outs)
+
+
+def _conv_one(x, k: np.ndarray):
+    r = k.shape[0] // 2
+    if r == 0:
+        return x * jnp.asarray(k[0, 0], x.dtype)
     h, w = x.shape[-2:]
     xp = jnp.pad(x, ((0, 0), (0, 0), (r, r), (r, r)))
     out = None
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
-            taps = stack[:, r + dy, r + dx]
-            if not taps.any():
+            tap = float(k[r + dy, r + dx])
+            if tap == 0.0:
                 continue
-            # output(p) = sum_d k(d) x(p - d): the source at p - d lands at p.
-            sl = xp[:, :, r - dy: r - dy + h, r - dx: r - dx + w]
-            term = jnp.asarray(taps, x.dtype)[:, None, None, None] * sl
+            term = tap * xp[:, :, r - dy: r - dy + h, r - dx: r - dx + w]
             out = term if out is None else out + term
-    return out
+    return out.astype(x.dtype)
 
 
 def down2(x):
@@ -236,17 +266,13 @@ def down2(x):
 
 def _up2_axis(x, axis):
     n = x.shape[axis]
-    prev = jnp.concatenate(
-        [jnp.take(x, jnp.array([0]), axis=axis), jnp.take(x, jnp.arange(n - 1), axis=axis)],
-        axis=axis,
-    )
-    nxt = jnp.concatenate(
-        [jnp.take(x, jnp.arange(1, n), axis=axis), jnp.take(x, jnp.array([n - 1]), axis=axis)],
-        axis=axis,
-    )
+    first = jax.lax.slice_in_dim(x, 0, 1, axis=axis)
+    last = jax.lax.slice_in_dim(x, n - 1, n, axis=axis)
+    prev = jnp.concatenate([first, jax.lax.slice_in_dim(x, 0, n - 1, axis=axis)], axis=axis)
+    nxt = jnp.concatenate([jax.lax.slice_in_dim(x, 1, n, axis=axis), last], axis=axis)
     even = 0.75 * x + 0.25 * prev
     odd = 0.75 * x + 0.25 * nxt
-    out = jnp.stack([even, odd], axis=axis + 1 if axis >= 0 else axis)
+    out = jnp.stack([even, odd], axis=axis + 1)
     shape = list(x.shape)
     shape[axis] = 2 * n
     return out.reshape(shape)
