@@ -57,6 +57,9 @@ FORMAT_VERSION = 1
 # A direction whose length is within this of 1 is kept bit-for-bit (so load(save(scene)) is exact);
 # anything else is divided by its length.
 _UNIT_TOLERANCE = 1e-6
+# Largest magnitude accepted for any number: finite in float32 with room for products (a value
+# like 1e308 is finite in JSON but would turn into inf in a float32 Scene).
+MAX_ABS = 1e30
 # Axes given for a plane must be perpendicular to its normal to this tolerance (cosine).
 _PERPENDICULAR_TOLERANCE = 1e-6
 
@@ -101,6 +104,10 @@ def _join(where: str, key) -> str:
     return f"{where}.{key}" if where else str(key)
 
 
+def _finite(x) -> bool:
+    return math.isfinite(x) and abs(x) <= MAX_ABS
+
+
 def _is_number(x) -> bool:
     return isinstance(x, int | float) and not isinstance(x, bool)
 
@@ -139,8 +146,8 @@ def _number(
     x = d[key]
     if not _is_number(x):
         raise SceneError(path, f"must be a number, got {_fmt(x)}")
-    if not math.isfinite(x):
-        raise SceneError(path, f"must be finite, got {_fmt(x)}")
+    if not _finite(x):
+        raise SceneError(path, f"must be finite (|x| <= {MAX_ABS:g}), got {_fmt(x)}")
     for bound, ok, word in (
         (gt, lambda v, b: v > b, ">"),
         (ge, lambda v, b: v >= b, ">="),
@@ -175,8 +182,8 @@ def _vector(value, path: str, n: int = 3) -> np.ndarray:
         or not all(_is_number(v) for v in value)
     ):
         raise SceneError(path, f"must be a list of {n} numbers, got {_fmt(value)}")
-    if not all(math.isfinite(v) for v in value):
-        raise SceneError(path, f"must be finite, got {_fmt(value)}")
+    if not all(_finite(v) for v in value):
+        raise SceneError(path, f"must be finite (|x| <= {MAX_ABS:g}), got {_fmt(value)}")
     return np.asarray(value, dtype=np.float64)
 
 
@@ -188,8 +195,8 @@ def _vec3(d, key, where, default=None, *, nonzero=False, positive=False, scalar_
         return np.asarray(default, dtype=np.float64)
     value = d[key]
     if scalar_ok and _is_number(value):
-        if not math.isfinite(value):
-            raise SceneError(path, f"must be finite, got {_fmt(value)}")
+        if not _finite(value):
+            raise SceneError(path, f"must be finite (|x| <= {MAX_ABS:g}), got {_fmt(value)}")
         v = np.full(3, float(value))
     else:
         try:
@@ -310,8 +317,10 @@ def load_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
                 xyz = tuple(float(a) for a in args[:3])
             except ValueError:
                 raise SceneError(where, f"cannot parse vertex coordinates in {line!r}") from None
-            if not all(math.isfinite(c) for c in xyz):
-                raise SceneError(where, f"vertex coordinates must be finite, got {line!r}")
+            if not all(_finite(c) for c in xyz):
+                raise SceneError(
+                    where, f"vertex coordinates must be finite (|x| <= {MAX_ABS:g}), got {line!r}"
+                )
             vertices.append(xyz)
         elif head == "f":
             if len(args) < 3:

@@ -5,6 +5,7 @@ import json
 import math
 import pathlib
 
+import jax
 import numpy as np
 import pytest
 
@@ -89,9 +90,16 @@ def test_error_unknown_object_type():
             ("objects", 0),
             "center",
             [0, math.nan, 1],
-            "objects[0].center: must be finite, got [0, NaN, 1]",
+            "objects[0].center: must be finite (|x| <= 1e+30), got [0, NaN, 1]",
         ),
-        (("objects", 0), "radius", math.inf, "objects[0].radius: must be finite, got Infinity"),
+        (("objects", 0), "radius", math.inf, "objects[0].radius: must be finite (|x| <= 1e+30)"),
+        # Finite in JSON but inf in a float32 Scene: rejected too.
+        (
+            ("objects", 0),
+            "radius",
+            1e308,
+            "objects[0].radius: must be finite (|x| <= 1e+30), got 1e+308",
+        ),
         (("objects", 0), "radius", "big", "objects[0].radius: must be a number, got 'big'"),
         (("objects", 0), "radius", True, "objects[0].radius: must be a number, got true"),
         (("objects", 1), "normal", [0, 0, 0], "objects[1].normal: must not be the zero vector"),
@@ -577,8 +585,6 @@ def round_trip_doc():
 
 
 def assert_scenes_equal(a, b):
-    import jax
-
     la, ta = jax.tree_util.tree_flatten(a)
     lb, tb = jax.tree_util.tree_flatten(b)
     assert ta == tb  # same structure, same static fields (max_bounces)
@@ -681,3 +687,63 @@ def test_documented_example_loads():
     assert scene.max_bounces == 2 and scene.textures.shape == (2, 256, 256, 3)
     cam = dofjax._scenefile.camera_from_dict(doc["camera"])
     assert cam.width == 512 and float(cam.aperture_radius) == 0.05
+
+
+def test_fuzzed_documents_raise_only_scene_errors():
+    """Random corruptions of a valid document (junk values, deleted keys) give a SceneError, never
+    another exception or a warning (pytest turns warnings into errors), and never a silent inf."""
+    import random
+
+    junk = [
+        None,
+        True,
+        0,
+        -1,
+        1.5,
+        math.nan,
+        math.inf,
+        1e308,
+        "",
+        "x",
+        [],
+        [1],
+        [1, 2, 3],
+        [1, 2, 3, 4],
+        ["a", 1, 2],
+        {},
+        {"a": 1},
+        [[0, 0, 0]],
+        [0, 0, 0],
+    ]
+
+    def paths(o, p=()):
+        if p:
+            yield p
+        items = o.items() if isinstance(o, dict) else enumerate(o) if isinstance(o, list) else ()
+        for k, v in items:
+            yield from paths(v, p + (k,))
+
+    base = round_trip_doc()
+    base["texture_size"] = 4
+    all_paths = list(paths(base))
+    rng = random.Random(1)
+    outcomes = {"error": 0, "ok": 0}
+    for _ in range(300):
+        doc = copy.deepcopy(base)
+        path = rng.choice(all_paths)
+        parent = doc
+        for k in path[:-1]:
+            parent = parent[k]
+        if isinstance(parent, dict) and rng.random() < 0.2:
+            del parent[path[-1]]
+        else:
+            parent[path[-1]] = copy.deepcopy(rng.choice(junk))
+        try:
+            scene = scene_from_dict(doc)
+        except SceneError:
+            outcomes["error"] += 1
+            continue
+        outcomes["ok"] += 1
+        for leaf in jax.tree_util.tree_leaves(scene):
+            assert np.all(np.isfinite(np.asarray(leaf))), path
+    assert outcomes["error"] > 200 and outcomes["ok"] > 5, outcomes
