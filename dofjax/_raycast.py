@@ -24,8 +24,8 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._camera import Camera
-from ._intersect import Hit, nearest, nearest_t
-from ._numerics import normalize, safe_div
+from ._intersect import Hit, dot, max3, nearest, nearest_t, unit
+from ._numerics import safe_div, safe_sqrt
 from ._rgbd import RGBD, Layers
 from ._scene import Scene
 
@@ -71,22 +71,21 @@ def _eps_scale(dtype) -> float:
 
 def _tmin(o, d):
     """Smallest accepted ray parameter for rays starting at `o` (a point maybe on a surface)."""
-    scale = _eps_scale(d.dtype) * (1.0 + jnp.max(jnp.abs(o), axis=-1))
-    return safe_div(scale, jnp.linalg.norm(d, axis=-1), jnp.inf)
+    scale = _eps_scale(d.dtype) * (1.0 + max3(jnp.abs(o)))
+    return safe_div(scale, safe_sqrt(dot(d, d)), jnp.inf)
 
 
 def _offset(p, n):
     """Move a hit point off its surface along the (ray-facing) normal, against self-intersection."""
-    scale = _eps_scale(p.dtype) * (1.0 + jnp.max(jnp.abs(p), axis=-1, keepdims=True))
-    return p + scale * n
+    scale = _eps_scale(p.dtype) * (1.0 + max3(jnp.abs(p)))
+    return p + scale[:, None] * n
 
 
 # ----------------------------------------------------------------------------------------------
 # Shading
 
 
-def _dot(a, b):
-    return jnp.sum(a * b, axis=-1)
+_dot = dot  # spelled-out 3-component dot product (fast on XLA CPU, unlike sum(axis=-1))
 
 
 def _texture(textures, index, uv, wrap_u, wrap_v, dtype):
@@ -150,13 +149,18 @@ def _local(scene: Scene, p, n, view, material, hit: Hit):
         spec = jnp.where(pos, jnp.where(pos, rv, 1.0) ** shininess, 0.0)
         lit = visible & (ndotl > 0)
         term = radiance * (diffuse[:, None, :] * ndotl[..., None] + specular[:, None, :] * spec[..., None])
-        return out + jnp.sum(jnp.where(lit[..., None], term, 0.0), axis=1)
+        term = jnp.where(lit[..., None], term, 0.0)
+        # Sum over lights spelled out for the usual one or two lights (XLA CPU reduces a short
+        # middle axis slowly); a reduction only when there are many.
+        if term.shape[1] <= 4:
+            return out + sum(term[:, i] for i in range(term.shape[1]))
+        return out + jnp.sum(term, axis=1)
 
     if scene.point_lights is not None:
         lights = scene.point_lights
         to_light = lights.position[None, :, :] - p[:, None, :]  # (N, L, 3)
         dist2 = _dot(to_light, to_light)
-        l_dir = normalize(to_light)
+        l_dir = unit(to_light)
         radiance = lights.intensity[None] * safe_div(1.0, dist2)[..., None]
         # The light sits at t = 1 along (light - origin); anything hit before it casts the shadow.
         o = jnp.broadcast_to(origins[:, None, :], to_light.shape)
@@ -164,7 +168,7 @@ def _local(scene: Scene, p, n, view, material, hit: Hit):
         out = add(out, l_dir, radiance, visible)
     if scene.directional_lights is not None:
         lights = scene.directional_lights
-        l_dir = jnp.broadcast_to(normalize(-lights.direction)[None], (p.shape[0],) + lights.direction.shape)
+        l_dir = jnp.broadcast_to(unit(-lights.direction)[None], (p.shape[0],) + lights.direction.shape)
         radiance = jnp.broadcast_to(lights.intensity[None], l_dir.shape)
         o = jnp.broadcast_to(origins[:, None, :], l_dir.shape)
         visible = _shadow_free(scene, o, l_dir, jnp.inf)
@@ -180,7 +184,7 @@ def _shade_hits(scene: Scene, o, d, tmin):
     ts = jnp.where(is_hit, t, 0.0)
     p = o + ts[:, None] * d
     normal = jnp.where((_dot(hit.normal, d) > 0)[:, None], -hit.normal, hit.normal)
-    local = _local(scene, p, normal, normalize(-d), material, hit)
+    local = _local(scene, p, normal, unit(-d), material, hit)
     mirror = scene.materials.mirror[material]
     return t, is_hit, p, normal, local, mirror
 
