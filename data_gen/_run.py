@@ -553,8 +553,7 @@ def run(out_dir: str, count: int, seed: int, cfg: Mapping, *, workers: int = 1,
                     raise
     finally:
         bar.close()
-    lines = [_json_dumps(records[i]) + "\n" for i in range(count)]
-    _write_text_atomic(os.path.join(out_dir, "manifest.jsonl"), "".join(lines))
+    write_manifest(out_dir, [records[i] for i in range(count)])
     seconds = time.perf_counter() - start
     return RunSummary(
         count=count,
@@ -565,6 +564,35 @@ def run(out_dir: str, count: int, seed: int, cfg: Mapping, *, workers: int = 1,
         kinds=dict(Counter(r["kind"] for r in records.values())),
         noise_models=dict(Counter(r["noise"]["model"] for r in records.values())),
     )
+
+
+def write_manifest(out_dir: str, records: list[dict]) -> None:
+    """Write ``manifest.jsonl`` (atomically) from sample records, one line each in index order."""
+    lines = [_json_dumps(r) + "\n" for r in sorted(records, key=lambda r: r["index"])]
+    _write_text_atomic(os.path.join(out_dir, "manifest.jsonl"), "".join(lines))
+
+
+def collect(out_dir: str, count: int) -> list[dict]:
+    """Check that samples 0..count-1 are all finished and write the manifest; return the records.
+
+    For other executors: run `generate_sample(out_dir, i, seed, cfg)` for every i anywhere (after
+    writing ``generator.json`` once, as `run` does), then call this on the shared directory.
+
+    Raises:
+        ValueError: listing the indices that are missing or incomplete.
+    """
+    records, missing = [], []
+    for i in range(count):
+        rec = finished_record(out_dir, i)
+        if rec is None:
+            missing.append(i)
+        else:
+            records.append(rec)
+    if missing:
+        shown = ", ".join(map(str, missing[:20])) + (" ..." if len(missing) > 20 else "")
+        raise ValueError(f"{out_dir}: {len(missing)} sample(s) missing or incomplete: {shown}")
+    write_manifest(out_dir, records)
+    return records
 
 
 def read_manifest(out_dir: str) -> list[dict]:

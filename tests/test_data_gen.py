@@ -46,6 +46,11 @@ def _digest(root: str) -> dict[str, str]:
     return out
 
 
+def _lines(path: str) -> list[str]:
+    with open(path) as f:
+        return f.read().splitlines()
+
+
 @pytest.fixture(scope="module")
 def small_cfg():
     return load_config(SMALL)
@@ -400,6 +405,33 @@ def test_resume_after_interrupted_run(dataset, small_cfg, tmp_path):
     summary = run(work, COUNT, SEED, small_cfg, progress=False)
     assert summary.skipped == COUNT - 2 and summary.generated == 2
     assert _digest(work) == want
+
+
+def test_extending_a_data_set_keeps_its_samples(dataset, small_cfg, tmp_path):
+    out, _ = dataset
+    work = str(tmp_path / "more")
+    shutil.copytree(out, work)
+    before = _digest(out)
+    summary = run(work, COUNT + 1, SEED, small_cfg, progress=False)
+    assert summary.skipped == COUNT and summary.generated == 1
+    after = _digest(work)
+    assert {k: v for k, v in after.items() if k in before and k != "manifest.jsonl"} == {
+        k: v for k, v in before.items() if k != "manifest.jsonl"}
+    lines = _lines(os.path.join(work, "manifest.jsonl"))
+    assert len(lines) == COUNT + 1
+    assert lines[:COUNT] == _lines(os.path.join(out, "manifest.jsonl"))
+
+
+def test_collect_for_other_executors(dataset, tmp_path):
+    out, _ = dataset
+    work = str(tmp_path / "ext")
+    shutil.copytree(out, work)
+    os.remove(os.path.join(work, "manifest.jsonl"))
+    records = data_gen.collect(work, COUNT)
+    assert records == read_manifest(out) == read_manifest(work)
+    os.remove(os.path.join(work, sample_files(2)["record"]))
+    with pytest.raises(ValueError, match="1 sample.s. missing or incomplete: 2"):
+        data_gen.collect(work, COUNT)
 
 
 def test_resume_refuses_a_different_config(dataset, small_cfg, tmp_path):
