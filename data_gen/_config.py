@@ -285,6 +285,14 @@ def validate_config(cfg: Mapping) -> dict:
         if isinstance(target["window"], list):
             raise ConfigError(f"config.target.window: must be a number or null, got "
                               f"{target['window']!r}")
+        mc = cam["max_coc_px"]
+        if mc is None or mc > target["window"]:
+            # A blur larger than the window is clamped by defocus: the target would no longer
+            # be the image of the recorded focus and aperture.
+            raise ConfigError(
+                f"config.target.window: must be >= config.camera.max_coc_px (a larger blur is "
+                f"clamped), got window={target['window']} and max_coc_px={mc}"
+            )
     else:
         target["window"] = None
 

@@ -257,8 +257,9 @@ def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = Non
     camera = pinhole.replace(focus_distance=fa["focus_distance"],
                              aperture_radius=fa["aperture_radius"])
     if method == "defocus":
-        # window None: defocus picks its kernel window from this image's largest blur (bucketed,
-        # one compile per bucket); a fixed window compiles once but every sample pays for it.
+        # A fixed window (>= max_coc_px, checked by the config) compiles the defocus once per
+        # kind; with None, defocus sizes it from each image's largest blur in buckets, which
+        # costs one 5-15 s compile per new bucket: slower for data sets of a few hundred samples.
         clean = dofjax.defocus(rgbd, camera, window=target_cfg["window"])
         spp = target_cfg["sharp_spp"]
     else:
@@ -630,7 +631,8 @@ def dry_run(cfg: Mapping, count: int, seed: int) -> str:
     lines = [
         f"data_gen plan: {count} samples, seed {seed}, {w}x{h} px",
         f"target: {t['method']}"
-        + (f" (layers={t['layers']}, sharp spp={t['sharp_spp']})" if t["method"] == "defocus"
+        + (f" (layers={t['layers']}, sharp spp={t['sharp_spp']}, window={t['window']} px)"
+           if t["method"] == "defocus"
            else f" (lens-sampling reference, spp={t['reference_spp']})"),
         "kinds (count / expected):",
     ]

@@ -98,6 +98,7 @@ def test_default_config_validates():
         ({"target": {"method": "magic"}}, "config.target.method: must be one of"),
         ({"target": {"layers": 0}}, "config.target.layers: must be an integer >= 1"),
         ({"target": {"window": 0}}, "config.target.window: must be > 0"),
+        ({"target": {"window": 8}}, "config.target.window: must be >= config.camera.max_coc_px"),
         ({"noise": []}, "config.noise: must be a non-empty list"),
         ({"noise": [{"model": "salt"}]}, "config.noise[0].model: must be one of"),
         ({"noise": [{"model": "gaussian"}]}, "missing parameter 'sigma'"),
@@ -442,6 +443,7 @@ def test_resume_refuses_a_different_config(dataset, small_cfg, tmp_path):
         run(work, COUNT, SEED + 1, small_cfg, progress=False)
 
 
+@pytest.mark.slow  # two spawned processes, each imports JAX and compiles its own renderer
 def test_workers_give_the_same_bytes(small_cfg, tmp_path, dataset):
     # Two spawned processes, only the cheapest kind (each process compiles its own renderer).
     cfg = json.loads(json.dumps(small_cfg))
