@@ -22,6 +22,7 @@ from ._io import (
     write_rgbd as write_rgbd,
 )
 from ._raycast import Traced as Traced, render as render, trace as trace
+from ._reference import render_reference as render_reference
 from ._rgbd import RGBD as RGBD, Layers as Layers
 from ._scene import (
     Boxes as Boxes,
