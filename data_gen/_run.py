@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from ._config import describe
+from ._config import describe, validate_config
 from ._kinds import KIND_FUNCTIONS, choose, make_scene
 from ._noise import apply_noise, draw_noise_params, sample_rng, sample_uint32
 
@@ -105,8 +105,10 @@ def draw_lens(cfg: Mapping, rng: np.random.Generator) -> dict:
 
 
 def draw_focus_aperture(cfg: Mapping, rng: np.random.Generator, lens: Mapping,
-                        z_near: float, z_far: float, width: int) -> dict:
-    """Focus distance and aperture radius for a scene whose visible depths span [z_near, z_far].
+                        visible: tuple[float, float], blurred: tuple[float, float],
+                        width: int) -> dict:
+    """Focus distance and aperture radius for a scene whose visible depths span `visible`
+    (near, far), and whose surfaces the defocus may show (hidden layers too) span `blurred`.
 
     Focus: log-uniform in ``camera.focus_distance``; with ``focus_in_scene`` that range is first
     narrowed to the scene's depth span widened by a factor 1.5 each way (so a scene of one depth
@@ -114,7 +116,7 @@ def draw_focus_aperture(cfg: Mapping, rng: np.random.Generator, lens: Mapping,
 
     Aperture: log-uniform in ``aperture_radius`` (photographic: the f-number log-uniform in
     ``f_number``, A = f / (2N), which is the same as A log-uniform between f / (2 N_max) and
-    f / (2 N_min)). The blur this gives is the largest |c| = A k |1/z - 1/d| over the visible
+    f / (2 N_min)). The blur this gives is the largest |c| = A k |1/z - 1/d| over the `blurred`
     depths (DESIGN.md section 1); the aperture range is narrowed so that it lies in
     [``min_coc_px``, ``max_coc_px``]: otherwise most draws would be invisibly small or larger
     than a defocus window. Where the two disagree, ``max_coc_px`` wins over the configured
@@ -125,6 +127,7 @@ def draw_focus_aperture(cfg: Mapping, rng: np.random.Generator, lens: Mapping,
         blur actually reached), aperture_capped (the CoC bounds narrowed the range).
     """
     cam = cfg["camera"]
+    z_near, z_far = visible
     f_lo, f_hi = (cam["focus_distance"] if isinstance(cam["focus_distance"], list)
                   else [cam["focus_distance"]] * 2)
     if cam["focus_in_scene"]:
@@ -137,7 +140,7 @@ def draw_focus_aperture(cfg: Mapping, rng: np.random.Generator, lens: Mapping,
         f_hi = max(f_hi, f_lo)
     d = _f32(_loguniform(rng, [f_lo, f_hi]))
     k = width / (2.0 * math.tan(math.radians(lens["fov"]) / 2.0))
-    spread = max(abs(1.0 / z_near - 1.0 / d), abs(1.0 / z_far - 1.0 / d), 1e-12)
+    spread = max(abs(1.0 / blurred[0] - 1.0 / d), abs(1.0 / blurred[1] - 1.0 / d), 1e-12)
     if cam["model"] == "thin_lens":
         r = cam["aperture_radius"]
         a_lo, a_hi = (r if isinstance(r, list) else [r, r])
@@ -147,7 +150,9 @@ def draw_focus_aperture(cfg: Mapping, rng: np.random.Generator, lens: Mapping,
         a_lo, a_hi = lens["focal_length"] / (2.0 * n_hi), lens["focal_length"] / (2.0 * n_lo)
     lo, hi = a_lo, a_hi
     if cam["max_coc_px"] is not None:
-        hi = min(hi, cam["max_coc_px"] / (k * spread))
+        # (1 - 1e-5): float32 rounding of A, d and k must not push |c| past the bound (and past a
+        # defocus window equal to it, which would clamp the blur).
+        hi = min(hi, cam["max_coc_px"] * (1 - 1e-5) / (k * spread))
     if cam["min_coc_px"] is not None:
         lo = max(lo, cam["min_coc_px"] / (k * spread))
     lo = min(lo, hi)
@@ -205,17 +210,23 @@ class _Clock:
             self.t = now
 
 
-def _depth_span(rgbd) -> tuple[float, float]:
-    """Nearest and farthest finite z-depth the camera sees, mirror images included."""
-    maps = [np.asarray(rgbd.depth)]
-    if rgbd.reflection_depth is not None:
-        maps.append(np.asarray(rgbd.reflection_depth))
-    if rgbd.layers is not None:
-        maps.append(np.asarray(rgbd.layers.depth))
+def _span(maps) -> tuple[float, float]:
     finite = np.concatenate([m[np.isfinite(m)].ravel() for m in maps])
     if finite.size == 0:
         raise RuntimeError("the sharp render has no finite depth (the scene is empty)")
     return float(finite.min()), float(finite.max())
+
+
+def _depth_spans(rgbd) -> tuple[tuple[float, float], tuple[float, float]]:
+    """(near, far) finite z-depth the camera sees (mirror images included), and (near, far) of
+    every surface the defocus may show, hidden peeled layers included."""
+    maps = [np.asarray(rgbd.depth)]
+    if rgbd.reflection_depth is not None:
+        maps.append(np.asarray(rgbd.reflection_depth))
+    visible = _span(maps)
+    if rgbd.layers is not None:
+        maps.append(np.asarray(rgbd.layers.depth))
+    return visible, _span(maps)
 
 
 def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = None) -> dict:
@@ -251,9 +262,9 @@ def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = Non
                             aperture_radius=0.0)
     layers = target_cfg["layers"] if method == "defocus" else None
     rgbd = dofjax.render(scene, pinhole, spp=target_cfg["sharp_spp"], layers=layers)
-    z_near, z_far = _depth_span(rgbd)  # (blocks until the render is done)
+    (z_near, z_far), blur_span = _depth_spans(rgbd)  # (blocks until the render is done)
     clock.lap("render")
-    fa = draw_focus_aperture(cfg, cam_rng, lens, z_near, z_far, width)
+    fa = draw_focus_aperture(cfg, cam_rng, lens, (z_near, z_far), blur_span, width)
     camera = pinhole.replace(focus_distance=fa["focus_distance"],
                              aperture_radius=fa["aperture_radius"])
     if method == "defocus":
@@ -510,7 +521,7 @@ def run(out_dir: str, count: int, seed: int, cfg: Mapping, *, workers: int = 1,
         raise ValueError(f"workers: must be an integer >= 1, got {workers!r}")
     from tqdm.auto import tqdm
 
-    cfg = json.loads(_json_dumps(cfg))
+    cfg = validate_config(json.loads(_json_dumps(cfg)))
     start = time.perf_counter()
     _use_jax_cache(jax_cache_dir)
     os.makedirs(out_dir, exist_ok=True)
