@@ -422,3 +422,30 @@ def test_float32_camera_gives_float32_image():
 def test_bad_arguments_raise_clear_errors(kwargs, match):
     with pytest.raises(ValueError, match=match):
         render_reference(_plane_scene(2.0), _camera(8), key=jax.random.key(0), **kwargs)
+
+
+def test_cli_render_reference(tmp_path, capsys):
+    """`dofjax render --reference --spp N --seed S` writes the lens-sampling image and metadata."""
+    from dofjax._cli import main
+
+    doc = {
+        "version": 1,
+        "camera": {"width": 8, "height": 8, "fov": 40, "focus_distance": 1, "aperture_radius": 0.1},
+        "materials": {"wall": {"ambient": 1, "diffuse": 0, "texture": "checker:4"}},
+        "objects": [
+            {"type": "plane", "point": [0, 0, 2], "normal": [0, 0, -1], "material": "wall"}
+        ],
+    }
+    scene_path = tmp_path / "scene.json"
+    scene_path.write_text(__import__("json").dumps(doc))
+    out = tmp_path / "ref.exr"
+    args = ["render", str(scene_path), "--reference", "--spp", "4", "--seed", "3", "-o", str(out)]
+    assert main(args) == 0
+    rgb, depth, meta = dofjax.read_exr(out)
+    assert depth is None and meta["reference"] == 1 and meta["seed"] == 3 and meta["spp"] == 4
+    want = render_reference(
+        dofjax.load_scene(scene_path), dofjax.load_camera(scene_path), spp=4, key=jax.random.key(3)
+    )
+    np.testing.assert_allclose(rgb, np.asarray(want), rtol=0, atol=1e-6)
+    assert "lens-sampling reference" in capsys.readouterr().out
+    assert main(args + ["--layers", "2"]) == 2  # not combinable: a clear error, exit status 2

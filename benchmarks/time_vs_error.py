@@ -1,0 +1,434 @@
+"""Run time versus error: every defocus variant, the seed's algorithm and lens sampling, measured
+against a high-spp lens-sampling ground truth (issue 4; DESIGN.md section 4).
+
+    python benchmarks/time_vs_error.py                       # default: 64x64, truth 4096 spp
+    python benchmarks/time_vs_error.py --size 128 --scenes occluders,mirror
+
+Scenes are the JSON files in benchmarks/scenes/ (their camera sections give the pose and field of
+view; `SETTINGS` below gives the focus/aperture/shape settings of each). For every scene setting:
+
+- ground truth: `dofjax.render_reference` at --truth-spp (default 4096) spp, cached on disk under
+  benchmarks/results/cache/ (keyed by scene file contents, setting, size and spp);
+- methods: `dofjax.defocus` on `dofjax.render` output (single layer; K peeled layers; the mirror
+  layer ignored, where the scene has mirrors), the seed's algorithm (`seed_defocus`, the "before"
+  row), and `render_reference` at --spps (1, 4, ..., 1024);
+- timing: median of --runs (>= 5) calls after one warm-up call, with the compile time (first call
+  minus median) separate, `block_until_ready` on every result; defocus is reported alone and as a
+  pipeline (sharp render + defocus), and forward + reverse-mode gradient of an image loss with
+  respect to (focus distance, aperture) where differentiable. Lens sampling is timed on the first
+  setting of each scene (its cost does not depend on focus or aperture) and its error measured on
+  every setting.
+- error: RMSE, PSNR and SSIM (scikit-image; data range = the truth's range) against the truth.
+
+Writes benchmarks/results/time_vs_error.{md,json,png} and prints the table and the headline: "to
+match defocus's error, lens sampling needs N times the time".
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+import dofjax
+
+HERE = Path(__file__).resolve().parent
+
+# Focus distance and aperture radius (world units) and aperture shape per scene. Apertures give a
+# largest |CoC| of about 4-6 px at 64x64 (it scales with the image width).
+SETTINGS = {
+    "plane": [
+        dict(name="focus 2 (plane behind)", focus=2.0, aperture=0.2),
+        dict(name="focus 8 (plane in front)", focus=8.0, aperture=0.3),
+    ],
+    "occluders": [
+        dict(name="focus 2.5 (middle quad)", focus=2.5, aperture=0.15),
+        dict(name="focus 10 (backdrop)", focus=10.0, aperture=0.1),
+    ],
+    "mirror": [
+        dict(name="focus 3 (mirror)", focus=3.0, aperture=0.25),
+        dict(name="focus 6.5 (reflection)", focus=6.5, aperture=0.25),
+    ],
+    "highlights": [
+        dict(name="focus 3, disc", focus=3.0, aperture=0.25),
+        dict(name="focus 3, 5 blades", focus=3.0, aperture=0.25,
+             shape=dict(shape="polygon", blades=5, rotation=0.3)),
+    ],
+    "depth_range": [
+        dict(name="focus 4", focus=4.0, aperture=0.12),
+        dict(name="focus 1.5", focus=1.5, aperture=0.06),
+    ],
+}
+
+
+def _block(x):
+    return jax.block_until_ready(x)
+
+
+def timed(fn, runs: int):
+    """(result, median seconds over `runs` calls after a warm-up, compile seconds, all times)."""
+    t0 = time.perf_counter()
+    out = _block(fn())
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        out = _block(fn())
+        times.append(time.perf_counter() - t0)
+    med = statistics.median(times)
+    return out, med, max(first - med, 0.0), times
+
+
+def metrics(img, truth) -> dict:
+    img = np.asarray(img, dtype=np.float64)
+    truth = np.asarray(truth, dtype=np.float64)
+    data_range = float(truth.max() - truth.min()) or 1.0
+    rmse = float(np.sqrt(np.mean((img - truth) ** 2)))
+    psnr = float(peak_signal_noise_ratio(truth, img, data_range=data_range))
+    ssim = float(structural_similarity(truth, img, channel_axis=-1, data_range=data_range))
+    return dict(rmse=rmse, psnr=psnr, ssim=ssim)
+
+
+def sized_camera(camera: dofjax.Camera, size: int, setting: dict) -> dofjax.Camera:
+    return dofjax.Camera(
+        width=size, height=size, fov=camera.fov, focus_distance=setting["focus"],
+        aperture_radius=setting["aperture"], eye=camera.eye, target=camera.target, up=camera.up,
+    )
+
+
+def ground_truth(scene, cam, scene_text: str, setting: dict, args) -> np.ndarray:
+    shape = setting.get("shape", {})
+    tag = json.dumps(dict(scene=scene_text, setting=setting, size=args.size, spp=args.truth_spp,
+                          sampler="stratified", key=0, version=1), sort_keys=True)
+    digest = hashlib.sha256(tag.encode()).hexdigest()[:16]
+    path = Path(args.cache) / f"truth_{digest}.npy"
+    if path.exists():
+        return np.load(path)
+    print(f"    ground truth: {args.truth_spp} spp at {args.size}x{args.size} ...", flush=True)
+    t0 = time.perf_counter()
+    img = dofjax.render_reference(scene, cam, spp=args.truth_spp, key=jax.random.key(0),
+                                  progress=True, **shape)
+    img = np.asarray(_block(img))
+    print(f"    ground truth done in {time.perf_counter() - t0:.1f} s", flush=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.save(path, img)
+    return img
+
+
+def max_abs_coc(rgbd, cam) -> float:
+    """Largest |c| (px) over every depth the defocus will see (layers, reflections included)."""
+    depths = [rgbd.depth]
+    if rgbd.layers is not None:
+        depths.append(rgbd.layers.depth)
+    if rgbd.reflection_depth is not None:
+        depths.append(rgbd.reflection_depth)
+    return max(float(jnp.max(jnp.abs(dofjax.coc_radius(d, cam)))) for d in depths)
+
+
+def seed_function():
+    fn = getattr(dofjax, "seed_defocus", None)
+    if fn is None:  # not re-exported yet: the module is still the seed's algorithm as written
+        try:
+            from dofjax._seed import seed_defocus as fn
+        except ImportError:
+            fn = None
+    return fn
+
+
+def defocus_rows(scene, cam, truth, setting, args) -> list[dict]:
+    shape = setting.get("shape", {})
+    rows = []
+    variants = [("defocus, 1 layer", None)] + [
+        (f"defocus, {k} peeled layers", k) for k in args.layers
+    ]
+    truth_j = jnp.asarray(truth, dtype=jnp.float32)
+    for name, layers in variants:
+        rgbd, t_render, c_render, _ = timed(
+            lambda layers=layers: dofjax.render(scene, cam, spp=args.sharp_spp, layers=layers),
+            args.runs,
+        )
+        out, t_fwd, c_fwd, _ = timed(lambda rgbd=rgbd: dofjax.defocus(rgbd, cam, **shape), args.runs)
+        # Forward + reverse-mode gradient of an image loss w.r.t. (focus, aperture), through the
+        # jittable entry point with the window the forward call chose (the image's largest |c|).
+        f = dofjax.defocus_fn(rgbd, cam, window=max(max_abs_coc(rgbd, cam), 1.0), **shape)
+
+        @jax.jit
+        def loss_and_grad(d, a, f=f):
+            return jax.value_and_grad(
+                lambda p: jnp.mean((f(p[0], p[1]) - truth_j) ** 2)
+            )(jnp.stack([d, a]))
+
+        d0 = jnp.asarray(setting["focus"], jnp.float32)
+        a0 = jnp.asarray(setting["aperture"], jnp.float32)
+        _, t_grad, c_grad, _ = timed(lambda: loss_and_grad(d0, a0), args.runs)
+        rows.append(dict(method=name, kind="defocus", time=t_fwd, compile=c_fwd,
+                         render_time=t_render, render_compile=c_render,
+                         pipeline_time=t_render + t_fwd, grad_time=t_grad, grad_compile=c_grad,
+                         **metrics(out, truth)))
+        if layers is None and rgbd.reflection is not None:
+            # The seed's listed inaccuracy: reflected light blurred at the mirror's depth.
+            out, t_fwd, c_fwd, _ = timed(
+                lambda rgbd=rgbd: dofjax.defocus(rgbd.rgb, rgbd.depth, cam, **shape), args.runs
+            )
+            rows.append(dict(method="defocus, 1 layer, mirror at its own depth", kind="defocus",
+                             time=t_fwd, compile=c_fwd, render_time=t_render,
+                             render_compile=c_render, pipeline_time=t_render + t_fwd,
+                             grad_time=None, grad_compile=None, **metrics(out, truth)))
+    seed = seed_function()
+    if seed is not None:
+        rgbd = dofjax.render(scene, cam, spp=args.sharp_spp)
+        rgb, depth = np.asarray(rgbd.rgb), np.asarray(rgbd.depth)
+        out, t_fwd, c_fwd, _ = timed(lambda: seed(rgb, depth, cam), args.runs)
+        t_render = rows[0]["render_time"]
+        rows.append(dict(method="seed (Yu 2004, as written)", kind="seed", time=t_fwd,
+                         compile=c_fwd, render_time=t_render, render_compile=None,
+                         pipeline_time=t_render + t_fwd, grad_time=None, grad_compile=None,
+                         **metrics(out, truth)))
+    return rows
+
+
+def lens_rows(scene, cam, truth, setting, args, timing: dict | None) -> list[dict]:
+    """Lens sampling at each spp: error on this setting; timing measured when `timing` is None
+    (and returned in the rows), else reused from the scene's first setting."""
+    shape = setting.get("shape", {})
+    rows = []
+    for spp in args.spps:
+        def call(spp=spp):
+            return dofjax.render_reference(scene, cam, spp=spp, key=jax.random.key(1), **shape)
+
+        if timing is None:
+            out, t, c, _ = timed(call, args.runs)
+        else:
+            out = _block(call())
+            t, c = timing[spp]
+        rows.append(dict(method=f"lens sampling, {spp} spp", kind="lens", spp=spp, time=t,
+                         compile=c, pipeline_time=t, grad_time=None, grad_compile=None,
+                         **metrics(out, truth)))
+    return rows
+
+
+def lens_time_at(error: float, lens: list[dict]) -> tuple[float, str]:
+    """Lens-sampling time that reaches `error`, by log-log interpolation along its curve.
+
+    Returns (seconds, note): note is "" when interpolated, "extrapolated" beyond the largest spp
+    (with the slope of the last two points), or "<=" when 1 spp already has a lower error.
+    """
+    pts = sorted(((r["time"], r["rmse"]) for r in lens), key=lambda p: p[0])
+    if error >= pts[0][1]:
+        return pts[0][0], "<="
+    for (t0, e0), (t1, e1) in zip(pts, pts[1:], strict=False):
+        if e1 <= error <= e0 and e0 > e1:
+            w = (math.log(error) - math.log(e0)) / (math.log(e1) - math.log(e0))
+            return math.exp(math.log(t0) + w * (math.log(t1) - math.log(t0))), ""
+    (t0, e0), (t1, e1) = pts[-2], pts[-1]
+    slope = (math.log(t1) - math.log(t0)) / (math.log(e1) - math.log(e0)) if e1 < e0 else -2.0
+    return math.exp(math.log(t1) + slope * (math.log(error) - math.log(e1))), "extrapolated"
+
+
+def fmt_ms(x) -> str:
+    if x is None:
+        return "n/a"
+    return f"{1e3 * x:.1f}" if x < 10 else f"{x:.1f} s"
+
+
+def write_outputs(results: list[dict], args, headline: list[str]):
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "time_vs_error.json", "w") as fh:
+        json.dump(dict(args=vars(args), results=results), fh, indent=1)
+    lines = [
+        "# Run time versus error",
+        "",
+        f"Command: `python benchmarks/time_vs_error.py {' '.join(sys.argv[1:])}`".rstrip(),
+        "",
+        f"{args.size}x{args.size} px, float32, ground truth = `render_reference` at "
+        f"{args.truth_spp} spp (stratified), sharp input rendered at {args.sharp_spp} spp; "
+        f"median of {args.runs} runs after warm-up on {platform.machine()} with "
+        f"{os.cpu_count()} CPU cores ({jax.default_backend()}), jax {jax.__version__}. "
+        "Times in ms unless marked s. *time* is the method alone, *pipeline* adds the sharp "
+        "`render` (with its layers) that defocus needs; *fwd+grad* is one loss value and its "
+        "reverse-mode gradient w.r.t. (focus, aperture). Lens sampling is timed on the first "
+        "setting of each scene. *truth noise* is an upper bound on the ground truth's own RMSE: "
+        "RMSE(1024 spp) / sqrt(1 + 4096/1024) assuming 1/spp variance.",
+        "",
+        "## Headline",
+        "",
+        *[f"- {h}" for h in headline],
+        "",
+        "![time vs error](time_vs_error.png)",
+        "",
+    ]
+    for res in results:
+        lines += [
+            f"## {res['scene']}: {res['setting']}",
+            "",
+            f"max |CoC| {res['max_coc']:.1f} px; truth noise <= {res['truth_noise']:.2g}",
+            "",
+            "| method | time | compile s | pipeline | fwd+grad | RMSE | PSNR dB | SSIM |",
+            "|---|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+        for r in res["rows"]:
+            lines.append(
+                f"| {r['method']} | {fmt_ms(r['time'])} | {r['compile']:.2f} | "
+                f"{fmt_ms(r['pipeline_time'])} | {fmt_ms(r['grad_time'])} | {r['rmse']:.4f} | "
+                f"{r['psnr']:.1f} | {r['ssim']:.3f} |"
+            )
+        lines.append("")
+    (out / "time_vs_error.md").write_text("\n".join(lines))
+    plot(results, out / "time_vs_error.png")
+
+
+def plot(results: list[dict], path: Path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(results)
+    cols = 2
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(11, 3.6 * rows), squeeze=False)
+    markers = "osD^vP*X"
+    for ax, res in zip(axes.flat, results, strict=False):
+        lens = [r for r in res["rows"] if r["kind"] == "lens"]
+        ax.loglog([r["time"] for r in lens], [r["rmse"] for r in lens], "k.-",
+                  label="lens sampling (1..1024 spp)")
+        for r in lens:
+            ax.annotate(str(r["spp"]), (r["time"], r["rmse"]), fontsize=7,
+                        textcoords="offset points", xytext=(3, 3))
+        others = [r for r in res["rows"] if r["kind"] != "lens"]
+        for i, r in enumerate(others):
+            ax.loglog([r["pipeline_time"]], [r["rmse"]], markers[i % len(markers)],
+                      label=f"{r['method']} (render + defocus)" if r["kind"] == "defocus"
+                      else f"{r['method']} (render + seed)")
+        ax.axhline(res["truth_noise"], color="0.7", lw=0.8, ls=":")
+        ax.set_title(f"{res['scene']}: {res['setting']}", fontsize=9)
+        ax.set_xlabel("time per image (s)")
+        ax.set_ylabel("RMSE vs ground truth")
+        ax.grid(True, which="both", lw=0.3)
+    for ax in list(axes.flat)[n:]:
+        ax.axis("off")
+    seen = {}
+    for ax in list(axes.flat)[:n]:
+        handles, labels = ax.get_legend_handles_labels()
+        for h, lab in zip(handles, labels, strict=True):
+            seen.setdefault(lab, h)
+    fig.legend(list(seen.values()), list(seen.keys()), loc="lower center", ncol=2, fontsize=8,
+               bbox_to_anchor=(0.5, 0.0))
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def headline_lines(results: list[dict]) -> list[str]:
+    out = []
+    methods = []
+    for res in results:
+        for r in res["rows"]:
+            if r["kind"] == "defocus" and r["method"] not in methods:
+                methods.append(r["method"])
+    for method in methods:
+        ratios, ratios_alone, notes = [], [], []
+        for res in results:
+            lens = [r for r in res["rows"] if r["kind"] == "lens"]
+            row = next((r for r in res["rows"] if r["method"] == method), None)
+            if row is None:
+                continue
+            t_lens, note = lens_time_at(row["rmse"], lens)
+            ratios.append(t_lens / row["pipeline_time"])
+            ratios_alone.append(t_lens / row["time"])
+            notes.append(note)
+            res.setdefault("ratios", {})[method] = dict(
+                lens_time=t_lens, note=note, vs_pipeline=ratios[-1], vs_defocus=ratios_alone[-1]
+            )
+        if not ratios:
+            continue
+        extra = []
+        if notes.count("extrapolated"):
+            extra.append(f"{notes.count('extrapolated')} extrapolated beyond 1024 spp")
+        if notes.count("<="):
+            extra.append(f"{notes.count('<=')} where 1 spp already matches (ratio is an upper "
+                         "bound)")
+        out.append(
+            f"To match the error of **{method}**, lens sampling needs "
+            f"**{statistics.median(ratios):.1f}x** the time of render + defocus "
+            f"(median over {len(ratios)} scene settings, range {min(ratios):.2g}x to "
+            f"{max(ratios):.2g}x; {statistics.median(ratios_alone):.0f}x the defocus call "
+            f"alone){'; ' + ', '.join(extra) if extra else ''}."
+        )
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--size", type=int, default=64, help="image width = height, px (default 64)")
+    p.add_argument("--truth-spp", type=int, default=4096, help="ground-truth spp (default 4096)")
+    p.add_argument("--spps", default="1,4,16,64,256,1024", help="lens-sampling spp to compare")
+    p.add_argument("--runs", type=int, default=5, help="timed runs after warm-up (>= 5)")
+    p.add_argument("--sharp-spp", type=int, default=4, help="spp of the sharp render (default 4)")
+    p.add_argument("--layers", default="2,4", help="peeled-layer counts K to try (default 2,4)")
+    p.add_argument("--scenes", default=",".join(SETTINGS), help="comma-separated scene names")
+    p.add_argument("--out", default=str(HERE / "results"), help="output folder")
+    p.add_argument("--cache", default=str(HERE / "results" / "cache"), help="ground-truth cache")
+    args = p.parse_args(argv)
+    args.spps = [int(s) for s in args.spps.split(",")]
+    args.layers = [int(s) for s in args.layers.split(",") if s]
+    args.scenes = [s for s in args.scenes.split(",") if s]
+    if args.runs < 5:
+        p.error(f"--runs must be >= 5 (median of at least 5 timed runs), got {args.runs}")
+    for name in args.scenes:
+        if name not in SETTINGS:
+            p.error(f"--scenes: unknown scene {name!r} (known: {', '.join(SETTINGS)})")
+
+    results = []
+    t_start = time.perf_counter()
+    for name in args.scenes:
+        path = HERE / "scenes" / f"{name}.json"
+        scene_text = path.read_text()
+        scene = dofjax.load_scene(path)
+        base = dofjax.load_camera(path)
+        lens_timing = None
+        for setting in SETTINGS[name]:
+            cam = sized_camera(base, args.size, setting)
+            print(f"{name}: {setting['name']}", flush=True)
+            truth = ground_truth(scene, cam, scene_text, setting, args)
+            rows = defocus_rows(scene, cam, truth, setting, args)
+            lrows = lens_rows(scene, cam, truth, setting, args, lens_timing)
+            if lens_timing is None:
+                lens_timing = {r["spp"]: (r["time"], r["compile"]) for r in lrows}
+            rows += lrows
+            sharp = dofjax.render(scene, cam, layers=1)
+            res = dict(scene=name, setting=setting["name"], rows=rows,
+                       max_coc=max_abs_coc(sharp, cam))
+            top = max(args.spps)
+            e_top = next(r["rmse"] for r in lrows if r["spp"] == top)
+            res["truth_noise"] = e_top / math.sqrt(1.0 + args.truth_spp / top)
+            results.append(res)
+            for r in rows:
+                print(f"  {r['method']:<45} time {fmt_ms(r['time']):>9}  pipeline "
+                      f"{fmt_ms(r['pipeline_time']):>9}  RMSE {r['rmse']:.4f}  "
+                      f"PSNR {r['psnr']:5.1f}  SSIM {r['ssim']:.3f}", flush=True)
+    headline = headline_lines(results)
+    write_outputs(results, args, headline)
+    print()
+    for h in headline:
+        print(h.replace("**", ""))
+    print(f"\nwrote {Path(args.out) / 'time_vs_error.md'} and .png, .json "
+          f"({time.perf_counter() - t_start:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
