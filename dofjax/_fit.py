@@ -1,0 +1,870 @@
+"""Recover focus distance and aperture radius from a defocused image (DESIGN.md section 5).
+
+Given a target image and the sharp RGB-D it was made from, find the thin-lens focus distance d and
+aperture radius A whose defocus reproduces the target, with standard errors, an identifiability flag
+and an explicit report of the near/far ambiguity.
+
+How the fit works:
+- Parameterisation. The CoC `c = A k (1/z - 1/d)` is affine in u = 1/d and linear in A, so the
+  solvers work in u and log A, each squeezed into its bounds by MINUIT's map
+  (`u = u_lo + (u_hi - u_lo) (1 + sin p) / 2`), so no solver step can leave the bounds. The bounds are
+  given by the user on d and A (world units) and mapped.
+- The sharp RGB-D does not depend on d or A: only the defocus model runs per solver step.
+- Multi-start: a grid of u inside the bounds (plus the user's guess), all solved in one
+  `eqx.filter_vmap` batch, on a 2^L-downsampled copy of the images (pixel scale k / 2^L, so the CoC
+  in pixels shrinks with the image). The best start and the best start on the *other side* of the
+  scene's median inverse depth are then polished at full resolution.
+- Near/far ambiguity: |c| is symmetric about each depth, so a scene with (almost) one depth fits
+  equally well with focus in front of or behind it. If the polished alternative's sum of squares
+  exceeds the best one's by less than `ambiguity_threshold * s^2` (a likelihood-ratio test; s^2
+  is the residual variance), the result is flagged `ambiguous` and both minima are reported.
+- Uncertainty: covariance = s^2 (J^T J)^-1 with J = d residual / d (d, A) in world units, from
+  `jax.jacfwd` at the optimum. The columns of J are normalised before the (SVD) inverse; a
+  normalised condition number above `max_condition`, a parameter at its bound, or a solution whose
+  largest CoC is below a quarter pixel (the target looks sharp) gives `identifiable=False`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import math
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from ._camera import Camera, coc_radius
+from ._numerics import inverse_depth, safe_div
+
+PARAMS = ("focus_distance", "aperture_radius")
+SOLVERS = ("lm", "gauss_newton", "dogleg", "bfgs")
+LOSSES = ("l2", "huber", "cauchy")
+# Tuning constants for 95 % efficiency under Gaussian noise (Holland & Welsch 1977).
+_ROBUST_K = {"huber": 1.345, "cauchy": 2.385}
+# A CoC below this (px) is hidden by the defocus model's sub-pixel floor: the image looks sharp.
+_MIN_VISIBLE_COC = 0.25
+# Internal bound fraction closer than this to 0 or 1 counts as "at the bound".
+_AT_BOUND = 1e-3
+
+
+class FitResult(eqx.Module):
+    """What `fit_focus` found. Fields carry a leading batch axis when made by `fit_focus_batch`.
+
+    Attributes:
+        focus_distance: fitted d, world units along the optical axis.
+        aperture_radius: fitted A, world units.
+        focus_distance_se, aperture_radius_se: standard errors, world units (0 for a fixed
+            parameter; computed even when not identifiable, where they are meaningless/huge).
+        covariance: (2, 2) covariance of (d, A), world units squared (zero rows for fixed ones).
+        loss: mean of the per-value loss rho(r) over the unmasked pixel values (for "l2", the mean
+            squared residual).
+        noise_sigma: residual standard deviation s = sqrt(SSE / (n - p)), image units.
+        steps: solver steps (the chosen start's multi-start steps plus its polish steps).
+        converged: the final solver run reported success.
+        identifiable: False when the image cannot determine the fitted parameters (see `message`).
+        ambiguous: a minimum on the other side of the scene depth fits (statistically) as well.
+        alternative_focus_distance, alternative_aperture_radius, alternative_loss: the best minimum
+            on the other side of the scene's median depth (NaN if no start ended there).
+        condition: condition number of the column-normalised Jacobian (1 = orthogonal effects).
+        max_coc: largest |CoC| over the image at the solution, pixels.
+        camera: the input camera with the fitted focus distance and aperture radius.
+        message: human-readable summary of the flags (a tuple of strings for a batch).
+    """
+
+    focus_distance: Float[Array, "*b"]
+    aperture_radius: Float[Array, "*b"]
+    focus_distance_se: Float[Array, "*b"]
+    aperture_radius_se: Float[Array, "*b"]
+    covariance: Float[Array, "*b 2 2"]
+    loss: Float[Array, "*b"]
+    noise_sigma: Float[Array, "*b"]
+    steps: Int[Array, "*b"]
+    converged: Bool[Array, "*b"]
+    identifiable: Bool[Array, "*b"]
+    ambiguous: Bool[Array, "*b"]
+    alternative_focus_distance: Float[Array, "*b"]
+    alternative_aperture_radius: Float[Array, "*b"]
+    alternative_loss: Float[Array, "*b"]
+    condition: Float[Array, "*b"]
+    max_coc: Float[Array, "*b"]
+    camera: Camera
+    message: Any = eqx.field(static=True, default="")
+
+    def __getitem__(self, i: int) -> FitResult:
+        """Element i of a batched result (as a single FitResult)."""
+        if isinstance(self.message, str):
+            raise TypeError("FitResult: indexing needs a batched result (from fit_focus_batch)")
+        arrays = {f.name: getattr(self, f.name)[i] for f in dataclasses.fields(self)
+                  if f.name not in ("camera", "message")}
+        return FitResult(**arrays, camera=self.camera.replace(
+            focus_distance=arrays["focus_distance"], aperture_radius=arrays["aperture_radius"]),
+            message=self.message[i])
+
+    def as_dict(self) -> dict:
+        """Plain-Python summary (floats, bools, str): for JSON output."""
+        out = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if f.name == "camera":
+                continue
+            if f.name == "message":
+                out[f.name] = v if isinstance(v, str) else list(v)
+            else:
+                out[f.name] = np.asarray(v).tolist()
+        return out
+
+
+# ----------------------------------------------------------------------------------------------
+# The static part of a fit: one compiled program per distinct _Spec and image shape.
+
+
+@dataclasses.dataclass(frozen=True)
+class _Spec:
+    model: Callable  # full resolution
+    model_coarse: Callable  # for the 2^L-downsampled multi-start
+    solver: str
+    loss: str
+    auto_scale: bool  # robust loss with the scale estimated from the data (MAD)
+    free: tuple[int, ...]  # indices into PARAMS that are fitted
+    rtol: float
+    atol: float
+    max_steps: int
+    coarse: bool  # the multi-start runs on a downsampled copy
+    start_steps: int  # max steps per multi-start solve
+    robust_rounds: int
+
+
+class _Data(eqx.Module):
+    target: Float[Array, "h w 3"]
+    rgb: Float[Array, "h w 3"]
+    depth: Float[Array, "h w"]
+    weight: Float[Array, "h w"]
+
+
+def _make_solver(spec: _Spec, rtol: float, atol: float):
+    if spec.solver == "lm":
+        return optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+    if spec.solver == "gauss_newton":
+        return optx.GaussNewton(rtol=rtol, atol=atol)
+    if spec.solver == "dogleg":
+        return optx.Dogleg(rtol=rtol, atol=atol)
+    return optx.BFGS(rtol=rtol, atol=atol)
+
+
+def _robust_transform(r: Array, loss: str, delta: Array) -> Array:
+    """Residual r -> r_t with r_t^2 / 2 = rho(r), so a least-squares solver minimises sum rho.
+
+    Written as r * sqrt(w(r)) with a smooth weight w in (0, 1] (w = 1 near 0), which keeps the
+    value and its derivative finite at r = 0 (no sign(r) * sqrt(...) kink).
+    Huber: rho = r^2/2 (|r| <= delta), delta (|r| - delta/2) beyond.
+    Cauchy: rho = delta^2/2 log(1 + (r/delta)^2).
+    """
+    if loss == "l2":
+        return r
+    t = jnp.square(safe_div(r, delta))
+    if loss == "huber":
+        a = jnp.abs(safe_div(r, delta))
+        big = a > 1.0
+        a_safe = jnp.where(big, a, 2.0)
+        w = jnp.where(big, (2.0 * a_safe - 1.0) / (a_safe * a_safe), 1.0)
+    else:  # cauchy
+        small = t < 1e-6
+        t_safe = jnp.where(small, 1.0, t)
+        w = jnp.where(small, 1.0 - 0.5 * t, jnp.log1p(t_safe) / t_safe)
+    return r * jnp.sqrt(w)
+
+
+class _Param(eqx.Module):
+    """Maps the solver's unconstrained y to (u, log A) inside the bounds `lo`/`hi`.
+
+    The map is MINUIT's `lo + (hi - lo) (1 + sin y) / 2` (James, MINUIT manual): unlike a logistic
+    map it reaches a bound at finite y with zero slope, so a minimum on a bound is a stationary
+    point the solver converges to in a few steps instead of walking y off to infinity.
+    """
+
+    lo: Float[Array, "2"]
+    hi: Float[Array, "2"]
+    fixed_values: Float[Array, "2"]  # (u, log A) used for parameters that are not fitted
+
+    def to_ul(self, y: Array, free: tuple[int, ...]) -> Array:
+        vals = self.fixed_values
+        for j, i in enumerate(free):
+            frac = 0.5 * (1.0 + jnp.sin(y[j]))
+            vals = vals.at[i].set(self.lo[i] + (self.hi[i] - self.lo[i]) * frac)
+        return vals
+
+    def fraction(self, ul: Array) -> Array:
+        return (ul - self.lo) / (self.hi - self.lo)
+
+
+def _predict(ul: Array, data: _Data, camera: Camera, model: Callable) -> Array:
+    cam = camera.replace(focus_distance=1.0 / ul[0], aperture_radius=jnp.exp(ul[1]))
+    return model(data.rgb, data.depth, cam)
+
+
+def _residual_ul(ul, data: _Data, camera: Camera, model: Callable, loss: str, delta) -> Array:
+    """Flattened (transformed) residual (prediction - target), weighted and scaled by 1/sqrt(n).
+
+    The 1/sqrt(n) makes the solvers' 0.5 sum(r^2) a mean, so their absolute tolerances do not
+    depend on the image size.
+    """
+    pred = _predict(ul, data, camera, model)
+    r = (pred - data.target) * jnp.sqrt(data.weight)[..., None]
+    r = _robust_transform(r, loss, delta)
+    n = 3.0 * jnp.sum(data.weight)
+    return (r / jnp.sqrt(n)).reshape(-1)
+
+
+def _solve(y0, data, camera, param, spec, model, delta, rtol, atol):
+    """One optimistix least-squares solve from y0 (unconstrained coordinates of the free params).
+
+    Returns (y, mean loss 2 sum(rho) / n, steps, success).
+    """
+
+    def fn(y, args):
+        return _residual_ul(param.to_ul(y, spec.free), data, camera, model, spec.loss, args)
+
+    sol = optx.least_squares(fn, _make_solver(spec, rtol, atol), y0, args=delta,
+                             max_steps=spec.max_steps, throw=False)
+    # The solver's state holds f at the last accepted y (= sol.value): reusing it avoids one
+    # more copy of the (large) model in the compiled program.
+    f_info = sol.state.f_info
+    if spec.solver == "bfgs":
+        loss = 2.0 * f_info.f
+    else:
+        loss = jnp.sum(f_info.residual * f_info.residual)
+    return sol.value, loss, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+
+
+def _solve_many(y0s, data, camera, param, spec, model, delta, rtol, atol):
+    return eqx.filter_vmap(
+        lambda y0: _solve(y0, data, camera, param, spec, model, delta, rtol, atol)
+    )(y0s)
+
+
+def _mad_scale(data, camera, ul, model, loss) -> Array:
+    """Robust loss scale delta = k * 1.4826 * MAD of the residuals at ul (image units)."""
+    pred = _predict(ul, data, camera, model)
+    r = (pred - data.target).reshape(-1)
+    w = jnp.repeat(data.weight.reshape(-1), 3)
+    # Masked values are NaN so the medians ignore them.
+    r = jnp.where(w > 0, r, jnp.nan)
+    med = jnp.nanmedian(r)
+    mad = jnp.nanmedian(jnp.abs(r - med))
+    # A floor keeps delta > 0 for an exact fit (all residuals 0).
+    floor = 1e-6 * jnp.maximum(jnp.max(jnp.abs(data.target)), 1e-30)
+    return _ROBUST_K[loss] * jnp.maximum(1.4826 * mad, floor)
+
+
+def _uncertainty(ul, data, camera, spec, model, delta):
+    """Covariance of (d, A) in world units, s^2, the normalised condition number, residual."""
+    free = spec.free
+
+    def g(theta):  # theta: free params in user units (d, A)
+        ul_t = ul
+        for j, i in enumerate(free):
+            ul_t = ul_t.at[i].set(1.0 / theta[j] if i == 0 else jnp.log(theta[j]))
+        return _residual_ul(ul_t, data, camera, model, spec.loss, delta)
+
+    theta = jnp.stack([1.0 / ul[0] if i == 0 else jnp.exp(ul[1]) for i in free])
+    r, lin = jax.linearize(g, theta)
+    jac = jax.vmap(lin, out_axes=1)(jnp.eye(len(free), dtype=theta.dtype))  # (n, p)
+    n = 3.0 * jnp.sum(data.weight)
+    p = len(free)
+    sse = jnp.sum(r * r) * n  # undo the 1/sqrt(n) scaling of the residual
+    s2 = sse / jnp.maximum(n - p, 1.0)
+    jac_full = jac * jnp.sqrt(n)
+    # Column-normalised SVD: the condition number is scale free, and the inverse is stable even
+    # when J^T J is numerically singular (which forming J^T J would hide in float32).
+    scale = jnp.sqrt(jnp.sum(jac_full * jac_full, axis=0))
+    scale_safe = jnp.where(scale > 0, scale, 1.0)
+    _, sv, vt = jnp.linalg.svd(jac_full / scale_safe, full_matrices=False)
+    condition = jnp.where(jnp.all(scale > 0), safe_div(sv[0], sv[-1], jnp.inf), jnp.inf)
+    inv_sv2 = safe_div(1.0, sv * sv, jnp.inf)
+    cov_n = (vt.T * inv_sv2) @ vt
+    cov_free = s2 * cov_n / jnp.outer(scale_safe, scale_safe)
+    cov = jnp.zeros((2, 2), cov_free.dtype)
+    for a, i in enumerate(free):
+        for b, j in enumerate(free):
+            cov = cov.at[i, j].set(cov_free[a, b])
+    return cov, s2, condition, r
+
+
+def _pick(u_end, losses, u_scene):
+    """Index of the best end point and of the best one on the other side of u_scene."""
+    best = jnp.argmin(losses)
+    side = u_end > u_scene
+    other = side != side[best]
+    alt = jnp.argmin(jnp.where(other, losses, jnp.inf))
+    return best, jnp.where(jnp.any(other), alt, best), jnp.any(other)
+
+
+def _fit_core(data, coarse, camera, camera_c, param, y_starts, u_scene, delta0, spec: _Spec):
+    """Traceable body of one fit (vmapped over targets by fit_focus_batch).
+
+    delta0 is the robust scale for the first stage: +inf (plain least squares; every robust
+    weight is 1 there) for "l2" or an automatic scale, the user's `loss_scale` otherwise.
+    """
+    rtol, atol = spec.rtol, spec.atol
+    if spec.coarse:
+        src, cam1, model1 = coarse, camera_c, spec.model_coarse
+    else:
+        src, cam1, model1 = data, camera, spec.model
+    # The multi-start only has to land in the right basin (the polish follows), and under vmap
+    # every start waits for the slowest: loose tolerances and few steps.
+    r1, a1 = max(rtol, 1e-4), max(atol, 1e-8)
+    spec1 = dataclasses.replace(spec, max_steps=min(spec.max_steps, spec.start_steps))
+    ys, loss, steps, ok = _solve_many(y_starts, src, cam1, param, spec1, model1, delta0, r1, a1)
+    ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(ys)
+    best, alt, has_alt = _pick(ul_end[:, 0], loss, u_scene)
+    idx = jnp.stack([best, alt])
+    pair, pair_loss, pair_steps, pair_ok = ys[idx], loss[idx], steps[idx], ok[idx]
+    # Polish rounds at full resolution and full tolerance, one compiled solver for all of them
+    # (lax.scan): round 0 polishes the two multi-start winners, rounds >= 1 re-estimate the
+    # robust scale from the residuals (MAD) and re-solve (IRLS-style outer loop).
+    first = 0
+    rounds = 1 + (spec.robust_rounds if spec.auto_scale else 0)
+    delta = delta0
+    if rounds > first:
+
+        def round_(carry, k):
+            pair, _, pair_steps, _, delta = carry
+            if spec.auto_scale:
+                mad = _mad_scale(data, camera, param.to_ul(pair[0], spec.free), spec.model,
+                                 spec.loss)
+                delta = jnp.where(k == 0, delta0, mad)
+            pair, pair_loss, st, ok2 = _solve_many(pair, data, camera, param, spec, spec.model,
+                                                   delta, rtol, atol)
+            return (pair, pair_loss, pair_steps + st, ok2, delta), None
+
+        (pair, pair_loss, pair_steps, pair_ok, delta), _ = jax.lax.scan(
+            round_, (pair, pair_loss, pair_steps, pair_ok, jnp.asarray(delta0, pair.dtype)),
+            jnp.arange(first, rounds))
+    # The polish can swap the order of the two minima.
+    order = jnp.where(pair_loss[1] < pair_loss[0], jnp.array([1, 0]), jnp.array([0, 1]))
+    pair, pair_loss = pair[order], pair_loss[order]
+    pair_steps, pair_ok = pair_steps[order], pair_ok[order]
+    ul = param.to_ul(pair[0], spec.free)
+    ul_alt = param.to_ul(pair[1], spec.free)
+    cov, s2, condition, r = _uncertainty(ul, data, camera, spec, spec.model, delta)
+    n = 3.0 * jnp.sum(data.weight)
+    # Which side of the scene each polished minimum is on (the polish may have crossed over).
+    has_alt = has_alt & ((ul[0] > u_scene) != (ul_alt[0] > u_scene))
+    cam_fit = camera.replace(focus_distance=1.0 / ul[0], aperture_radius=jnp.exp(ul[1]))
+    coc = jnp.abs(coc_radius(data.depth, cam_fit))
+    max_coc = jnp.max(jnp.where(data.weight > 0, coc, 0.0))
+    return dict(
+        ul=ul, ul_alt=ul_alt, sse=pair_loss[0] * n, sse_alt=pair_loss[1] * n, has_alt=has_alt,
+        steps=pair_steps[0], converged=pair_ok[0], cov=cov, s2=s2, condition=condition,
+        frac=param.fraction(ul), max_coc=max_coc, n=n, delta=delta,
+        rms_target=jnp.sqrt(jnp.sum(jnp.square(data.target) * data.weight[..., None]) / n),
+        pred_finite=jnp.all(jnp.isfinite(r)),
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Host side: validation, defaults, pyramid, and turning raw arrays into a FitResult.
+
+
+@dataclasses.dataclass(frozen=True)
+class DefocusModel:
+    """dofjax's defocus with a static window: a hashable, jittable `model(rgb, depth, camera)`.
+
+    Attributes:
+        window: the largest |CoC| (px) supported; larger |c| is clamped to it by the defocus.
+        shape, blades, rotation, ratio: aperture shape, as `dofjax.defocus`.
+    """
+
+    window: float
+    shape: str = "disc"
+    blades: int | None = None
+    rotation: float = 0.0
+    ratio: float = 1.0
+
+    def __call__(self, rgb, depth, camera):
+        from ._defocus import defocus
+
+        return defocus(rgb, depth, camera, window=self.window, shape=self.shape,
+                       blades=self.blades, rotation=self.rotation, ratio=self.ratio)
+
+
+def _reach(depth: np.ndarray, weight: np.ndarray, k: float, u_bounds, a_hi: float) -> float:
+    """Largest |CoC| (px) any (u, A) inside the bounds can give on this image."""
+    inv = 1.0 / depth[weight > 0]
+    inv = np.where(np.isfinite(inv), inv, 0.0)
+    du = max(abs(u_bounds[0] - inv.min()), abs(u_bounds[1] - inv.max()),
+             abs(u_bounds[0] - inv.max()), abs(u_bounds[1] - inv.min()))
+    return a_hi * k * du
+
+
+def _check_array(name: str, x, shape_tail: tuple[int, ...], batch: bool = False) -> np.ndarray:
+    a = np.asarray(x)
+    want = len(shape_tail) + (1 if batch else 0)
+    if a.ndim != want or (shape_tail and a.shape[-len(shape_tail):] != shape_tail):
+        raise ValueError(f"{name}: expected shape {('B',) if batch else ()}"
+                         f"{shape_tail}, got {a.shape}")
+    return a
+
+
+def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, batch):
+    """All the checks that must happen before any solver runs. Returns numpy arrays."""
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a dofjax.Camera, got {type(camera).__name__}")
+    if solver not in SOLVERS:
+        raise ValueError(f"solver: must be one of {SOLVERS}, got {solver!r}")
+    if loss not in LOSSES:
+        raise ValueError(f"loss: must be one of {LOSSES}, got {loss!r}")
+    if isinstance(starts, bool) or not isinstance(starts, int) or starts < 1:
+        raise ValueError(f"starts: must be an integer >= 1, got {starts!r}")
+    fixed = (fixed,) if isinstance(fixed, str) else tuple(fixed)
+    for name in fixed:
+        if name not in PARAMS:
+            raise ValueError(f"fixed: names must be in {PARAMS}, got {name!r}")
+    if len(set(fixed)) == 2:
+        raise ValueError("fixed: cannot fix both focus_distance and aperture_radius")
+    depth_a = np.asarray(depth)
+    if depth_a.ndim != 2:
+        raise ValueError(f"depth: expected shape (H, W), got {depth_a.shape}")
+    hw = depth_a.shape
+    rgb_a = np.asarray(rgb)
+    if rgb_a.shape != hw + (3,):
+        raise ValueError(f"rgb: expected shape {hw + (3,)} to match depth {hw}, got {rgb_a.shape}")
+    tgt = np.asarray(target)
+    want = (hw + (3,)) if not batch else (tgt.shape[:1] + hw + (3,))
+    if tgt.ndim != len(want) or tgt.shape != want:
+        raise ValueError(
+            f"target: expected shape {('B',) if batch else ()}{hw + (3,)} to match rgb/depth, "
+            f"got {tgt.shape}")
+    if (camera.height, camera.width) != hw:
+        raise ValueError(
+            f"camera: width x height {camera.width}x{camera.height} does not match the image "
+            f"{hw[1]}x{hw[0]}")
+    for name, a in (("target", tgt), ("rgb", rgb_a)):
+        bad = ~np.isfinite(a)
+        if bad.any():
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            raise ValueError(f"{name}: {int(bad.sum())} non-finite value(s) (NaN or inf), "
+                             f"first at index {idx}")
+    if np.isnan(depth_a).any() or (depth_a <= 0).any():
+        idx = tuple(int(i) for i in np.argwhere(np.isnan(depth_a) | (depth_a <= 0))[0])
+        raise ValueError(f"depth: must be > 0 (or +inf for background), got {depth_a[idx]!r} "
+                         f"at index {idx}")
+    finite = np.isfinite(depth_a)
+    if mask is None:
+        weight = np.ones(hw)
+    else:
+        weight = np.asarray(mask, dtype=np.float64)
+        if weight.shape != hw:
+            raise ValueError(f"mask: expected shape {hw}, got {weight.shape}")
+        if not np.all(np.isfinite(weight)) or (weight < 0).any():
+            raise ValueError("mask: must be finite and >= 0 (bool or weights)")
+        if weight.sum() <= 0:
+            raise ValueError("mask: selects no pixels")
+    if not finite[weight > 0].any():
+        raise ValueError("depth: no finite depth under the mask (all background): nothing to fit")
+    d0 = float(camera.focus_distance)
+    a0 = float(camera.aperture_radius)
+    bounds = dict(bounds or {})
+    for key in bounds:
+        if key not in PARAMS:
+            raise ValueError(f"bounds: keys must be in {PARAMS}, got {key!r}")
+    z = depth_a[finite & (weight > 0)]
+    if "focus_distance" in bounds:
+        lo, hi = (float(v) for v in bounds["focus_distance"])
+        if not lo > 0 or math.isnan(hi):
+            raise ValueError(f"bounds['focus_distance']: lower bound must be > 0, got ({lo}, {hi})")
+        if not lo < hi:
+            raise ValueError(f"bounds['focus_distance']: inverted or empty, lower {lo} >= "
+                             f"upper {hi}")
+        if not lo <= d0 <= hi:
+            raise ValueError(f"camera.focus_distance: initial guess {d0} is outside "
+                             f"bounds['focus_distance'] = ({lo}, {hi})")
+        d_bounds = (lo, hi)
+    else:
+        d_bounds = (0.5 * min(float(z.min()), d0), math.inf)
+    if "aperture_radius" in bounds:
+        lo, hi = (float(v) for v in bounds["aperture_radius"])
+        if not lo >= 0 or not math.isfinite(hi):
+            raise ValueError(f"bounds['aperture_radius']: need 0 <= lower < upper < inf, got "
+                             f"({lo}, {hi})")
+        if not lo < hi:
+            raise ValueError(f"bounds['aperture_radius']: inverted or empty, lower {lo} >= "
+                             f"upper {hi}")
+        if not lo <= a0 <= hi:
+            raise ValueError(f"camera.aperture_radius: initial guess {a0} is outside "
+                             f"bounds['aperture_radius'] = ({lo}, {hi})")
+        # log A needs a positive lower bound; 1e-6 of the upper one is a pinhole in practice.
+        a_bounds = (max(lo, hi * 1e-6), hi)
+    else:
+        if not a0 > 0:
+            raise ValueError("camera.aperture_radius: the initial guess is 0 (a pinhole); give a "
+                             "positive guess or bounds={'aperture_radius': (lo, hi)}")
+        a_bounds = (a0 / 10.0, a0 * 10.0)
+    return tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds
+
+
+def _pool(x: Array, f: int, spatial_axis: int) -> Array:
+    """Box-average the two axes from `spatial_axis` by f (cropping to multiples of f)."""
+    h, w = x.shape[spatial_axis], x.shape[spatial_axis + 1]
+    hc, wc = (h // f) * f, (w // f) * f
+    sl = [slice(None)] * x.ndim
+    sl[spatial_axis], sl[spatial_axis + 1] = slice(0, hc), slice(0, wc)
+    x = x[tuple(sl)]
+    shape = x.shape[:spatial_axis] + (hc // f, f, wc // f, f) + x.shape[spatial_axis + 2:]
+    return x.reshape(shape).mean(axis=(spatial_axis + 1, spatial_axis + 3))
+
+
+def _coarse_data(data: _Data, f: int) -> _Data:
+    inv = inverse_depth(data.depth)
+    inv_c = _pool(inv, f, 0)
+    # CoC is affine in 1/z, so the average inverse depth keeps the average CoC.
+    depth_c = jnp.where(inv_c > 0, 1.0 / jnp.where(inv_c > 0, inv_c, 1.0), jnp.inf)
+    return _Data(target=_pool(data.target, f, 0), rgb=_pool(data.rgb, f, 0), depth=depth_c,
+                 weight=_pool(data.weight, f, 0))
+
+
+def _coarse_camera(camera: Camera, f: int) -> Camera:
+    """Camera for the f-times smaller image with pixel scale exactly k / f (so CoC_px / f)."""
+    wc, hc = camera.width // f, camera.height // f
+    k = float(camera.pixel_scale)
+    fov = math.degrees(2.0 * math.atan(wc * f / (2.0 * k)))
+    return Camera(width=wc, height=hc, fov=fov, focus_distance=camera.focus_distance,
+                  aperture_radius=camera.aperture_radius, eye=camera.eye, target=camera.target,
+                  up=camera.up)
+
+
+def _levels(hw: tuple[int, int], coarse_size: int | None) -> int:
+    if coarse_size is None:
+        return 0
+    f = 1
+    while min(hw) // (2 * f) >= coarse_size:
+        f *= 2
+    return f
+
+
+def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, batch,
+             rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds, window,
+             max_window, defocus_options, start_steps):
+    tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds = _validate(
+        target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, batch)
+    dtype = jnp.result_type(float)
+    free = tuple(i for i, n in enumerate(PARAMS) if n not in fixed)
+    u_lo, u_hi = 1.0 / d_bounds[1], 1.0 / d_bounds[0]
+    la_lo, la_hi = math.log(a_bounds[0]), math.log(a_bounds[1])
+    d0, a0 = float(camera.focus_distance), float(camera.aperture_radius)
+    ul0 = np.array([1.0 / d0, math.log(min(max(a0, a_bounds[0]), a_bounds[1]))])
+    lo, hi = np.array([u_lo, la_lo]), np.array([u_hi, la_hi])
+    param = _Param(lo=jnp.asarray(lo, dtype), hi=jnp.asarray(hi, dtype),
+                   fixed_values=jnp.asarray(ul0, dtype))
+
+    def logit(frac):  # inverse of the bound map (see _Param)
+        frac = np.clip(frac, 1e-3, 1.0 - 1e-3)  # a guess on a bound starts just inside it
+        return np.arcsin(2.0 * frac - 1.0)
+
+    frac0 = (ul0 - lo) / (hi - lo)
+    if 0 in free and starts > 1:
+        grid = (np.arange(starts - 1) + 0.5) / (starts - 1)
+        u_fracs = np.concatenate([[frac0[0]], grid])
+    else:
+        u_fracs = np.array([frac0[0]])
+    y_starts = []
+    for fu in u_fracs:
+        y = []
+        for i in free:
+            y.append(logit(fu) if i == 0 else logit(frac0[1]))
+        y_starts.append(y)
+    y_starts = jnp.asarray(np.array(y_starts), dtype)
+    inv = 1.0 / depth_a[np.isfinite(depth_a) & (weight > 0)]
+    u_scene = jnp.asarray(float(np.median(inv)), dtype)
+    f = _levels(depth_a.shape, coarse_size)
+    if loss != "l2" and loss_scale is not None:
+        if not float(loss_scale) > 0:
+            raise ValueError(f"loss_scale: must be > 0, got {loss_scale!r}")
+        delta0 = jnp.asarray(float(loss_scale), dtype)
+    else:
+        delta0 = jnp.asarray(np.inf, dtype)  # plain least squares (all robust weights 1)
+    if model is None:
+        win = window if window is not None else min(
+            _reach(depth_a, weight, float(camera.pixel_scale), (u_lo, u_hi), a_bounds[1]),
+            max_window)
+        model = DefocusModel(window=float(max(win, 1.0)), **(defocus_options or {}))
+        model_c = dataclasses.replace(model, window=max(model.window / f, 1.0))
+    else:
+        model_c = model
+    spec = _Spec(
+        model=model, model_coarse=model_c, solver=solver, loss=loss,
+        auto_scale=(loss != "l2" and loss_scale is None), free=free, rtol=float(rtol),
+        atol=float(atol), max_steps=int(max_steps), coarse=f > 1, robust_rounds=robust_rounds,
+        start_steps=int(start_steps))
+    data = _Data(target=jnp.asarray(tgt, dtype), rgb=jnp.asarray(rgb_a, dtype),
+                 depth=jnp.asarray(depth_a, dtype), weight=jnp.asarray(weight, dtype))
+    camera_c = _coarse_camera(camera, f) if f > 1 else camera
+    return data, camera_c, param, y_starts, u_scene, delta0, spec, f
+
+
+@eqx.filter_jit
+def _fit_jit(data, camera, camera_c, param, y_starts, u_scene, delta0, spec, f):
+    coarse = _coarse_data(data, f) if spec.coarse else data
+    return _fit_core(data, coarse, camera, camera_c, param, y_starts, u_scene, delta0, spec)
+
+
+def _message(raw: dict, fixed_names: tuple[str, ...], max_condition: float, threshold: float,
+             spec: _Spec) -> tuple[bool, bool, str]:
+    """Host-side flags and message from one fit's raw arrays (numpy scalars)."""
+    notes = []
+    identifiable = True
+    if not raw["pred_finite"]:
+        notes.append("the defocus model returned non-finite pixels at the solution")
+        identifiable = False
+    frac = np.asarray(raw["frac"])
+    for i in spec.free:
+        name = PARAMS[i]
+        if frac[i] < _AT_BOUND or frac[i] > 1.0 - _AT_BOUND:
+            # u's upper bound is d's lower one.
+            which = ("lower" if frac[i] < _AT_BOUND else "upper")
+            if i == 0:
+                which = {"lower": "upper", "upper": "lower"}[which]
+            notes.append(f"{name} is at its {which} bound: its standard error is meaningless")
+            identifiable = False
+    if 1 in spec.free and float(raw["max_coc"]) < _MIN_VISIBLE_COC:
+        notes.append(f"the largest CoC at the solution is {float(raw['max_coc']):.3g} px: the "
+                     "target looks in focus everywhere, so focus and aperture are not determined")
+        identifiable = False
+    cond = float(raw["condition"])
+    if len(spec.free) == 2 and not cond <= max_condition:
+        notes.append(f"J^T J is near-singular (normalised condition number of J {cond:.3g} > "
+                     f"{max_condition:.3g}): focus distance and aperture trade off against each "
+                     "other in this image (e.g. a scene at a single depth); not identifiable")
+        identifiable = False
+    if len(spec.free) == 1 and not cond < np.inf:
+        notes.append("the image does not depend on the fitted parameter; not identifiable")
+        identifiable = False
+    n = float(raw["n"])
+    # Noise-free targets have s^2 ~ 0: floor it at (1e-4 of the target's rms)^2 so rounding
+    # differences between two exact fits do not count as evidence.
+    s2 = max(float(raw["s2"]), (1e-4 * float(raw["rms_target"])) ** 2, 1e-300)
+    dsse = float(raw["sse_alt"]) - float(raw["sse"])
+    ambiguous = bool(raw["has_alt"]) and dsse <= threshold * s2
+    if ambiguous:
+        d_alt = 1.0 / float(raw["ul_alt"][0])
+        a_alt = math.exp(float(raw["ul_alt"][1]))
+        notes.append(f"near/far ambiguity: focus_distance={d_alt:.6g}, aperture_radius="
+                     f"{a_alt:.6g} on the other side of the scene depth fits as well "
+                     f"(delta SSE / s^2 = {dsse / s2:.3g} <= {threshold:g})")
+    if not raw["converged"]:
+        notes.append("the solver did not report convergence (max_steps reached or failed)")
+    if fixed_names:
+        notes.append(f"fixed: {', '.join(fixed_names)}")
+    return identifiable, ambiguous, ("ok" if not notes else "; ".join(notes))
+
+
+def _result(raw: dict, camera: Camera, fixed_names, max_condition, threshold, spec,
+            batch: bool) -> FitResult:
+    raw = jax.tree_util.tree_map(np.asarray, raw)
+    nb = raw["ul"].shape[0] if batch else None
+    items = [jax.tree_util.tree_map(lambda a, i=i: a[i], raw) for i in range(nb)] if batch \
+        else [raw]
+    flags = [_message(r, fixed_names, max_condition, threshold, spec) for r in items]
+    ul, ul_alt = raw["ul"], raw["ul_alt"]
+    d, a = 1.0 / ul[..., 0], np.exp(ul[..., 1])
+    cov = raw["cov"]
+    n = raw["n"]
+    nan = np.full(d.shape, np.nan)
+    has_alt = raw["has_alt"]
+    fields = dict(
+        focus_distance=d, aperture_radius=a,
+        focus_distance_se=np.sqrt(np.maximum(cov[..., 0, 0], 0.0)),
+        aperture_radius_se=np.sqrt(np.maximum(cov[..., 1, 1], 0.0)),
+        covariance=cov,
+        loss=raw["sse"] / n,
+        noise_sigma=np.sqrt(raw["s2"]),
+        steps=raw["steps"], converged=raw["converged"],
+        identifiable=np.array([f[0] for f in flags]).reshape(d.shape),
+        ambiguous=np.array([f[1] for f in flags]).reshape(d.shape),
+        alternative_focus_distance=np.where(has_alt, 1.0 / ul_alt[..., 0], nan),
+        alternative_aperture_radius=np.where(has_alt, np.exp(ul_alt[..., 1]), nan),
+        alternative_loss=np.where(has_alt, raw["sse_alt"] / n, nan),
+        condition=raw["condition"], max_coc=raw["max_coc"],
+    )
+    dtype = jnp.result_type(float)
+    fields = {k: jnp.asarray(v, dtype if v.dtype.kind == "f" else None) for k, v in fields.items()}
+    cam = camera.replace(focus_distance=fields["focus_distance"],
+                         aperture_radius=fields["aperture_radius"])
+    msg = tuple(f[2] for f in flags) if batch else flags[0][2]
+    return FitResult(**fields, camera=cam, message=msg)
+
+
+def fit_focus(
+    target: ArrayLike,
+    rgb: ArrayLike,
+    depth: ArrayLike,
+    camera: Camera,
+    *,
+    bounds: dict[str, tuple[float, float]] | None = None,
+    solver: str = "lm",
+    loss: str = "l2",
+    loss_scale: float | None = None,
+    mask: ArrayLike | None = None,
+    fixed: Sequence[str] | str = (),
+    starts: int = 8,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 100,
+    start_steps: int = 30,
+    coarse_size: int | None = 64,
+    max_condition: float = 1e4,
+    ambiguity_threshold: float = 9.0,
+    robust_rounds: int = 2,
+    window: float | None = None,
+    max_window: float = 32.0,
+    defocus_options: dict | None = None,
+    model: Callable | None = None,
+) -> FitResult:
+    """Fit focus distance and aperture radius so that defocus(rgb, depth) matches `target`.
+
+    Args:
+        target: (H, W, 3) the blurred image, linear colour.
+        rgb, depth: (H, W, 3) sharp linear colour and (H, W) z-depth (world units, +inf for the
+            background) it was made from. They do not depend on the parameters: computed once.
+        camera: the initial guess for focus_distance and aperture_radius, and everything that is
+            not fitted (fov, resolution). Its width x height must equal the image's.
+        bounds: {"focus_distance": (lo, hi), "aperture_radius": (lo, hi)}, world units; either
+            may be omitted. Defaults: d in (min(z_min, d0) / 2, inf), A in (A0 / 10, 10 A0).
+            An aperture lower bound of 0 is taken as 1e-6 of the upper one (log A is fitted).
+        solver: "lm" (Levenberg-Marquardt, default), "gauss_newton", "dogleg" or "bfgs" (optimistix).
+        loss: "l2", or the robust "huber" / "cauchy" (residuals transformed so that sum r_t^2 / 2 =
+            sum rho(r)). `loss_scale` (image units) is the robust scale delta; if None it is
+            estimated as k * 1.4826 * MAD of the residuals after an l2 fit and refined
+            `robust_rounds` times.
+        mask: (H, W) bool or weights >= 0: pixels to fit (e.g. exclude clipped highlights).
+        fixed: parameter names held at the camera's value, e.g. ("aperture_radius",).
+        starts: number of multi-start points (the user's guess plus starts - 1 grid points in
+            u = 1/d inside the bounds), solved as one vmapped batch.
+        rtol, atol: optimistix tolerances for the final (full-resolution) solve, in the
+            solver's internal coordinates (logit-mapped u and log A) and the mean squared residual.
+        max_steps: per polish solve; start_steps: per multi-start solve (at tolerance 1e-4).
+        coarse_size: the multi-start runs on the image box-downsampled by 2^L, the largest factor
+            keeping min(H, W) / 2^L >= coarse_size (None: always full resolution); the best
+            start and the best one on the other side of the scene depth are then polished at
+            full resolution.
+        max_condition: flag not identifiable above this condition number of the column-
+            normalised Jacobian (J^T J's is its square).
+        ambiguity_threshold: the other-side minimum is "ambiguous" when its sum of squares
+            exceeds the best one's by at most this many residual variances s^2.
+        window: static defocus window (largest |CoC| in px, see `dofjax.defocus`); None: the
+            largest |CoC| reachable inside the bounds, capped at `max_window` (beyond which the
+            defocus clamps). The multi-start level uses window / 2^L.
+        defocus_options: shape/blades/rotation/ratio passed to `dofjax.defocus`.
+        model: a forward model `model(rgb, depth, camera) -> (H, W, 3)`, pure and jittable, used
+            instead of dofjax's defocus at every level (window/defocus_options are then ignored).
+            Pass the same (hashable) object again to reuse the compiled program.
+
+    Returns:
+        A FitResult (values, standard errors, flags and message, fitted camera).
+
+    Raises:
+        ValueError: on shape mismatches, NaN/inf in target or rgb, invalid depth, inverted or
+            invalid bounds, an initial guess outside the bounds, unknown solver/loss/fixed names;
+            all before any solver runs.
+    """
+    prep = _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, False,
+                    rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds,
+                    window, max_window, defocus_options, start_steps)
+    data, camera_c, param, y_starts, u_scene, delta0, spec, f = prep
+    raw = _fit_jit(data, camera, camera_c, param, y_starts, u_scene, delta0, spec, f)
+    fixed_names = tuple(PARAMS[i] for i in range(2) if i not in spec.free)
+    return _result(raw, camera, fixed_names, max_condition, ambiguity_threshold, spec, False)
+
+
+def fit_focus_scene(target: ArrayLike, scene, camera: Camera, *, spp: int = 1,
+                    **kwargs) -> FitResult:
+    """`fit_focus` from a dofjax Scene: render the sharp RGB-D once (pinhole), then fit.
+
+    Args:
+        target: (H, W, 3) blurred image; camera: initial guess and the pose/fov to render with;
+        spp: samples per pixel of the sharp render; kwargs: as for `fit_focus`.
+    """
+    from ._raycast import render
+
+    rgbd = render(scene, camera, spp=spp)
+    return fit_focus(target, rgbd.rgb, rgbd.depth, camera, **kwargs)
+
+
+@eqx.filter_jit
+def _batch_jit(targets, data, camera, camera_c, param, y_starts, u_scene, delta0, spec, f, mesh):
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    batch = NamedSharding(mesh, PartitionSpec("batch"))
+    targets = jax.lax.with_sharding_constraint(targets, batch)
+
+    def one(t):
+        d = eqx.tree_at(lambda d: d.target, data, t)
+        coarse = _coarse_data(d, f) if spec.coarse else d
+        return _fit_core(d, coarse, camera, camera_c, param, y_starts, u_scene, delta0, spec)
+
+    # XLA's SPMD partitioner splits the vmapped fits along the batch axis; the shared images are
+    # replicated. (Under vmap every fit in a shard steps until the slowest has converged.)
+    out = jax.vmap(one)(targets)
+    return jax.tree_util.tree_map(lambda x: jax.lax.with_sharding_constraint(x, batch), out)
+
+
+def fit_focus_batch(
+    targets: ArrayLike,
+    rgb: ArrayLike,
+    depth: ArrayLike,
+    camera: Camera,
+    *,
+    devices: Sequence[Any] | None = None,
+    **kwargs,
+) -> FitResult:
+    """`fit_focus` for B targets of the same sharp RGB-D, in one vmapped call sharded over devices.
+
+    The batch axis is split over a 1-D `jax.sharding.Mesh` named "batch" (B is padded to a
+    multiple of the device count); each device fits its share with `jax.vmap`. Across several
+    hosts, call `jax.distributed.initialize()` first on every host: `jax.devices()` then lists
+    all hosts' devices and the same call shards over all of them.
+
+    Args:
+        targets: (B, H, W, 3) blurred images; rgb, depth, camera: shared, as `fit_focus`.
+        devices: devices to shard over (default all of `jax.devices()`).
+        kwargs: as `fit_focus` (bounds, solver, loss, starts, ...).
+
+    Returns:
+        A FitResult whose array fields have a leading axis B, `message` a tuple of B strings;
+        `result[i]` is the i-th fit.
+    """
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    names = inspect.signature(fit_focus).parameters
+    for key in kwargs:
+        if key not in names or key in ("target", "rgb", "depth", "camera"):
+            raise TypeError(f"fit_focus_batch: unexpected keyword argument {key!r}")
+    opts = {k: p.default for k, p in names.items() if p.kind == p.KEYWORD_ONLY}
+    opts.update(kwargs)
+    prep = _prepare(targets, rgb, depth, camera, opts["mask"], opts["bounds"], opts["fixed"],
+                    opts["solver"], opts["loss"], opts["starts"], True, opts["rtol"],
+                    opts["atol"], opts["max_steps"], opts["model"], opts["coarse_size"],
+                    opts["loss_scale"], opts["robust_rounds"], opts["window"],
+                    opts["max_window"], opts["defocus_options"], opts["start_steps"])
+    data, camera_c, param, y_starts, u_scene, delta0, spec, f = prep
+    devices = list(jax.devices() if devices is None else devices)
+    mesh = Mesh(np.array(devices), ("batch",))
+    tg = data.target
+    b = tg.shape[0]
+    pad = (-b) % len(devices)
+    if pad:  # repeat the last target; the extra fits are dropped below
+        tg = jnp.concatenate([tg, jnp.repeat(tg[-1:], pad, axis=0)])
+    tg = jax.device_put(tg, NamedSharding(mesh, PartitionSpec("batch")))
+    shared = eqx.tree_at(lambda d: d.target, data, data.target[0])
+    raw = _batch_jit(tg, shared, camera, camera_c, param, y_starts, u_scene, delta0, spec, f,
+                     mesh)
+    raw = jax.tree_util.tree_map(lambda a: np.asarray(a)[:b], raw)
+    fixed_names = tuple(PARAMS[i] for i in range(2) if i not in spec.free)
+    return _result(raw, camera, fixed_names, opts["max_condition"], opts["ambiguity_threshold"],
+                   spec, True)
