@@ -11,6 +11,13 @@ from ._defocus import (
     defocus as defocus,
     defocus_fn as defocus_fn,
 )
+from ._fit import (
+    DefocusModel as DefocusModel,
+    FitResult as FitResult,
+    fit_focus as fit_focus,
+    fit_focus_batch as fit_focus_batch,
+    fit_focus_scene as fit_focus_scene,
+)
 from ._io import (
     read_exr as read_exr,
     read_exr_layers as read_exr_layers,
