@@ -19,6 +19,21 @@ Every file is written to a temporary name and renamed into place, and the record
 is finished exactly when its record exists and its files have the recorded sizes. A re-run skips
 finished samples and redoes anything else (a half-written sample is overwritten), then rebuilds
 the manifest from the records, which also repairs a damaged or truncated manifest.
+
+A record (manifest line) holds: ``index``, ``seed``, ``kind``, ``identifiable`` (False for a
+single depth: focus in front of and behind it blur alike), ``method`` ("defocus" or "reference"),
+``files`` (paths relative to the output directory), ``bytes`` (file sizes, checked on resume),
+``noise`` (model and parameters as applied) and ``truth``: ``focus_distance``,
+``aperture_radius`` (world units), ``fov`` (horizontal, degrees), ``width``, ``height``, ``eye``,
+``target``, ``up``, ``camera_model``, ``depth_min`` / ``depth_max`` (visible z-depth span, mirror
+images included), ``max_coc_px`` (largest |CoC| in pixels over every surface the defocus may show,
+hidden peeled layers included), ``aperture_capped`` (the blur bounds narrowed the aperture range),
+and ``focal_length`` / ``sensor_width`` / ``f_number`` (photographic cameras) or
+``reference_key`` (reference targets: the `jax.random.key` seed). The EXR files carry the same
+truth plus ``kind``, ``identifiable``, ``noise``, ``noise_model``, ``seed``, ``index``,
+``method``, ``spp`` and ``role`` ("sharp" or "target") as ``dofjax:`` attributes. Noise can be
+reproduced from the record: ``apply_noise(clean, record["noise"], sample_rng(seed, index,
+"noise_pixels"))``, where ``clean`` is the target EXR's layer "clean" (absent for model "none").
 """
 
 from __future__ import annotations
