@@ -24,7 +24,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._camera import Camera
-from ._intersect import Hit, dot, max3, nearest, nearest_t, unit
+from ._intersect import Hit, dot, materialise, max3, nearest, nearest_t, unit
 from ._numerics import safe_div, safe_sqrt
 from ._rgbd import RGBD, Layers
 from ._scene import Scene
@@ -112,8 +112,7 @@ def _texture(textures, index, uv, wrap_u, wrap_v, dtype):
 def _shadow_free(scene, origins, to_light, tmax):
     """True where nothing lies between `origins` (N, L, 3) and t = tmax along `to_light`."""
     n, nl = to_light.shape[:2]
-    o = origins.reshape(-1, 3)
-    d = to_light.reshape(-1, 3)
+    o, d = materialise(origins.reshape(-1, 3), to_light.reshape(-1, 3))  # before tmin reads them
     t = nearest_t(scene, o, d, _tmin(o, d))
     return (t >= tmax).reshape(n, nl)
 
@@ -184,6 +183,7 @@ def _shade_hits(scene: Scene, o, d, tmin):
     ts = jnp.where(is_hit, t, 0.0)
     p = o + ts[:, None] * d
     normal = jnp.where((_dot(hit.normal, d) > 0)[:, None], -hit.normal, hit.normal)
+    p, normal = materialise(p, normal)  # read by many shading fusions: compute them once
     local = _local(scene, p, normal, unit(-d), material, hit)
     mirror = scene.materials.mirror[material]
     return t, is_hit, p, normal, local, mirror
