@@ -1,0 +1,26 @@
+"""Formatting helpers shared by the fit scripts (no maths)."""
+
+from __future__ import annotations
+
+
+def result_rows(result, truth: dict | None = None) -> list[list[str]]:
+    """Rows (parameter, true, recovered, standard error, error/SE) for a single FitResult."""
+    rows = []
+    for name in ("focus_distance", "aperture_radius"):
+        value = float(getattr(result, name))
+        se = float(getattr(result, name + "_se"))
+        true = None if not truth or truth.get(name) is None else float(truth[name])
+        rel = "" if true is None else f"{(value - true) / true:+.2e}"
+        z = "" if true is None or se == 0 else f"{(value - true) / se:+.2f}"
+        rows.append([name, "" if true is None else f"{true:.6g}", f"{value:.6g}", f"{se:.3g}",
+                     rel, z])
+    return rows
+
+
+def format_table(rows: list[list[str]], header=("parameter", "true", "recovered", "std err",
+                                                 "rel err", "err/SE")) -> str:
+    table = [list(header)] + rows
+    widths = [max(len(r[i]) for r in table) for i in range(len(header))]
+    lines = ["| " + " | ".join(c.ljust(w) for c, w in zip(r, widths)) + " |" for r in table]
+    lines.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")
+    return "\n".join(lines)

@@ -1,0 +1,113 @@
+"""Recover focus distance and aperture of one target image.
+
+    python -m fit.recover TARGET.exr --sharp SHARP.exr [--out PREFIX]
+    python -m fit.recover TARGET.exr --scene SCENE.json [--out PREFIX]
+
+The sharp RGB-D comes from an EXR with R, G, B and Z (`--sharp`), or is rendered from a scene
+file (`--scene`; its camera section supplies pose and fov). The initial guess is the file's
+camera (or --focus/--aperture). Prints true (if the target's `dofjax:` metadata has it) vs
+recovered with standard errors, and writes PREFIX.json (the FitResult) and PREFIX.png
+(target | fitted | 4x |residual|).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+
+import numpy as np
+
+import dofjax
+from fit._table import format_table, result_rows
+
+
+def _camera(meta: dict, shape, fallback: dofjax.Camera | None, focus, aperture) -> dofjax.Camera:
+    h, w = shape
+    def get(key, default):
+        return meta.get(key, default)
+    base = fallback
+    fov = get("fov", None if base is None else float(base.fov))
+    if fov is None:
+        raise SystemExit("recover: no fov in the sharp file's metadata; pass --fov")
+    return dofjax.Camera(
+        width=w, height=h, fov=fov,
+        focus_distance=focus if focus is not None else get(
+            "focus_distance", None if base is None else float(base.focus_distance)),
+        aperture_radius=aperture if aperture is not None else get(
+            "aperture_radius", None if base is None else float(base.aperture_radius)),
+        eye=get("eye", (0.0, 0.0, 0.0) if base is None else base.eye),
+        target=get("target", (0.0, 0.0, 1.0) if base is None else base.target),
+        up=get("up", (0.0, 1.0, 0.0) if base is None else base.up))
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description="Recover focus distance and aperture of a target.")
+    p.add_argument("target")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--sharp", help="sharp RGB-D EXR (R, G, B, Z)")
+    src.add_argument("--scene", help="scene JSON to render the sharp RGB-D from")
+    p.add_argument("--focus", type=float, help="initial focus distance guess")
+    p.add_argument("--aperture", type=float, help="initial aperture radius guess")
+    p.add_argument("--fov", type=float, help="horizontal fov (deg) if the files lack it")
+    p.add_argument("--focus-bounds", type=float, nargs=2)
+    p.add_argument("--aperture-bounds", type=float, nargs=2)
+    p.add_argument("--solver", default="lm")
+    p.add_argument("--loss", default="l2")
+    p.add_argument("--starts", type=int, default=8)
+    p.add_argument("--window", type=float, help="defocus window (px)")
+    p.add_argument("--out", help="output prefix (default: TARGET without .exr + '.fit')")
+    a = p.parse_args(argv)
+
+    target, _, tmeta = dofjax.read_exr(a.target)
+    if a.sharp:
+        rgb, depth, smeta = dofjax.read_exr(a.sharp)
+        if depth is None:
+            raise SystemExit(f"recover: {a.sharp} has no Z channel")
+        meta = {**smeta}
+        if a.fov is not None:
+            meta["fov"] = a.fov
+        guess = dict(focus=a.focus, aperture=a.aperture)
+        # The target's truth must not leak into the initial guess: use the sharp file's camera.
+        camera = _camera(meta, depth.shape, None, **guess) if "fov" in meta else None
+        if camera is None:
+            raise SystemExit("recover: no fov in the sharp file's metadata; pass --fov")
+    else:
+        scene = dofjax.load_scene(a.scene)
+        cam0 = dofjax.load_camera(a.scene)
+        if cam0 is None:
+            raise SystemExit(f"recover: {a.scene} has no camera section")
+        camera = _camera({}, target.shape[:2], cam0, a.focus, a.aperture)
+        sharp = dofjax.render(scene, camera)
+        rgb, depth = np.asarray(sharp.rgb), np.asarray(sharp.depth)
+    bounds = {}
+    if a.focus_bounds:
+        bounds["focus_distance"] = tuple(a.focus_bounds)
+    if a.aperture_bounds:
+        bounds["aperture_radius"] = tuple(a.aperture_bounds)
+    result = dofjax.fit_focus(target, rgb, depth, camera, bounds=bounds or None, solver=a.solver,
+                              loss=a.loss, starts=a.starts, window=a.window)
+    truth = {k: tmeta.get(k) for k in ("focus_distance", "aperture_radius")}
+    if tmeta.get("role") == "sharp":
+        truth = {}
+    print(format_table(result_rows(result, truth)))
+    print(f"converged={bool(result.converged)} identifiable={bool(result.identifiable)} "
+          f"ambiguous={bool(result.ambiguous)} steps={int(result.steps)}")
+    print(f"message: {result.message}")
+    prefix = a.out or (os.path.splitext(a.target)[0] + ".fit")
+    with open(prefix + ".json", "w") as f:
+        json.dump({"target": a.target, "truth": truth, "result": result.as_dict()}, f, indent=1)
+    fitted = dofjax.defocus(rgb, depth, result.camera, window=result_window(a.window, result))
+    strip = np.concatenate([np.asarray(target), np.asarray(fitted),
+                            4.0 * np.abs(np.asarray(fitted) - np.asarray(target))], axis=1)
+    dofjax.write_png(prefix + ".png", strip)
+    print(f"wrote {prefix}.json and {prefix}.png (target | fitted | 4x |residual|)")
+
+
+def result_window(window, result) -> float | None:
+    """The window used to draw the fitted image: the fit's, or one that holds its largest CoC."""
+    return window if window is not None else max(float(result.max_coc), 1.0)
+
+
+if __name__ == "__main__":
+    main()

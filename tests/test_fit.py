@@ -1,0 +1,232 @@
+"""fit_focus: recovery, ambiguity, identifiability, uncertainty, robust loss, bad input.
+
+Most tests use `blur_model`, a small analytic forward model that depends on each pixel's |CoC|
+exactly like the real defocus does (a per-pixel blend of a sharp, a 3x3 and a 7x7 box blur,
+weighted smoothly by |c|): it compiles in seconds, so the fitting machinery (parameterisation,
+multi-start, ambiguity, covariance, robust loss) is tested without the defocus module's compile
+time. One test runs the real `dofjax.defocus` end to end.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dofjax
+from dofjax import Camera, coc_radius, fit_focus, fit_focus_batch
+
+N = 32
+
+
+def _box(x, r):
+    k = 2 * r + 1
+    p = jnp.pad(x, ((r, r), (r, r), (0, 0)), mode="edge")
+    c = jnp.cumsum(jnp.cumsum(p, 0), 1)
+    c = jnp.pad(c, ((1, 0), (1, 0), (0, 0)))
+    h, w = x.shape[:2]
+    return (c[k:k + h, k:k + w] - c[:h, k:k + w] - c[k:k + h, :w] + c[:h, :w]) / (k * k)
+
+
+def blur_model(rgb, depth, camera):
+    """Smooth in c (through c^2 + 1/4), even in c: the near/far ambiguity is exact."""
+    c = coc_radius(depth, camera)
+    r = jnp.sqrt(c * c + 0.25)
+    logits = jnp.stack([-(r - m) ** 2 for m in (0.5, 1.5, 3.5)], -1)
+    w = jax.nn.softmax(logits, axis=-1)
+    return w[..., 0:1] * rgb + w[..., 1:2] * _box(rgb, 1) + w[..., 2:3] * _box(rgb, 3)
+
+
+def scene(depths=(1.0, 2.0, 4.0), seed=0):
+    k1, k2 = jax.random.split(jax.random.key(seed))
+    rgb = jax.random.uniform(k1, (N, N, 3))
+    idx = jax.random.randint(k2, (4, 4), 0, len(depths))
+    depth = jnp.repeat(jnp.repeat(jnp.asarray(depths)[idx], 8, 0), 8, 1)
+    return rgb, depth
+
+
+CAM = Camera(width=N, height=N, fov=60.0, focus_distance=2.5, aperture_radius=0.05)
+TRUE = dict(focus_distance=1.7, aperture_radius=0.08)
+BOUNDS = {"focus_distance": (0.5, 20.0), "aperture_radius": (0.005, 0.5)}
+KW = dict(model=blur_model, starts=4, bounds=BOUNDS)
+
+
+def test_noise_free_recovery():
+    rgb, depth = scene()
+    target = blur_model(rgb, depth, CAM.replace(**TRUE))
+    res = fit_focus(target, rgb, depth, CAM, **KW)
+    assert abs(float(res.focus_distance) / 1.7 - 1) < 1e-6
+    assert abs(float(res.aperture_radius) / 0.08 - 1) < 1e-6
+    assert bool(res.converged) and bool(res.identifiable) and not bool(res.ambiguous)
+    assert float(res.camera.focus_distance) == float(res.focus_distance)
+    assert res.message == "ok"
+
+
+@pytest.mark.parametrize(
+    "solver", ["gauss_newton", pytest.param("dogleg", marks=pytest.mark.slow), "bfgs"])
+def test_other_solvers(solver):
+    rgb, depth = scene()
+    target = blur_model(rgb, depth, CAM.replace(**TRUE))
+    res = fit_focus(target, rgb, depth, CAM, solver=solver, **KW)
+    assert abs(float(res.focus_distance) / 1.7 - 1) < 1e-5
+    assert abs(float(res.aperture_radius) / 0.08 - 1) < 1e-5
+
+
+def test_one_parameter_fit():
+    rgb, depth = scene()
+    target = blur_model(rgb, depth, CAM.replace(**TRUE))
+    cam = CAM.replace(aperture_radius=0.08)  # the fixed value is the camera's
+    res = fit_focus(target, rgb, depth, cam, fixed=("aperture_radius",), **KW)
+    assert abs(float(res.focus_distance) / 1.7 - 1) < 1e-6
+    assert float(res.aperture_radius) == pytest.approx(0.08, rel=1e-12)
+    assert float(res.aperture_radius_se) == 0.0
+    assert "fixed: aperture_radius" in res.message
+
+
+def test_near_far_ambiguity_single_depth():
+    # One depth z = 2 and a known aperture: |c| = A k |1/2 - 1/d| has two solutions in d.
+    rgb, _ = scene()
+    depth = jnp.full((N, N), 2.0)
+    cam = CAM.replace(aperture_radius=0.08)
+    target = blur_model(rgb, depth, cam.replace(focus_distance=1.6))
+    u_mirror = 2 * 0.5 - 1 / 1.6  # the far twin: 1/d' = 2/z - 1/d
+    res = fit_focus(target, rgb, depth, cam, fixed="aperture_radius", **KW)
+    assert bool(res.ambiguous)
+    found = sorted([float(res.focus_distance), float(res.alternative_focus_distance)])
+    assert found == pytest.approx(sorted([1.6, 1 / u_mirror]), rel=1e-5)
+    assert "near/far ambiguity" in res.message
+
+
+def test_single_depth_both_free_not_identifiable():
+    rgb, _ = scene()
+    depth = jnp.full((N, N), 2.0)
+    target = blur_model(rgb, depth, CAM.replace(**TRUE))
+    res = fit_focus(target, rgb, depth, CAM, **KW)
+    assert not bool(res.identifiable)
+    assert "not identifiable" in res.message
+    assert float(res.loss) < 1e-12  # it still fits: the valley of (d, A) is exact
+
+
+def test_in_focus_target_not_identifiable():
+    rgb, depth = scene()
+    res = fit_focus(rgb, rgb, depth, CAM, **KW)  # the target is the sharp image
+    assert not bool(res.identifiable)
+    assert float(res.max_coc) < 0.25 or "bound" in res.message
+
+
+def test_standard_errors_match_monte_carlo():
+    rgb, depth = scene()
+    clean = blur_model(rgb, depth, CAM.replace(**TRUE))
+    sigma = 0.01
+    d, a, se_d, se_a = [], [], [], []
+    for i in range(12):
+        noise = sigma * jax.random.normal(jax.random.key(100 + i), clean.shape)
+        res = fit_focus(clean + noise, rgb, depth, CAM, **KW)
+        d.append(float(res.focus_distance))
+        a.append(float(res.aperture_radius))
+        se_d.append(float(res.focus_distance_se))
+        se_a.append(float(res.aperture_radius_se))
+        assert float(res.noise_sigma) == pytest.approx(sigma, rel=0.1)
+    # 12 draws estimate a spread to ~ +-20 %: loose bounds, but a wrong s^2 or J (e.g. in
+    # internal instead of world units) is off by far more.
+    for est, se in ((d, se_d), (a, se_a)):
+        ratio = np.std(est, ddof=1) / np.mean(se)
+        assert 0.5 < ratio < 2.0, ratio
+    assert abs(np.mean(d) - 1.7) < 3 * np.mean(se_d)
+
+
+@pytest.mark.parametrize("loss", ["huber", pytest.param("cauchy", marks=pytest.mark.slow)])
+def test_robust_loss_beats_l2_with_outliers(loss):
+    rgb, depth = scene()
+    clean = blur_model(rgb, depth, CAM.replace(**TRUE))
+    rng = np.random.default_rng(0)
+    target = np.array(clean) + 0.003 * rng.standard_normal(clean.shape)
+    hot = rng.random((N, N)) < 0.05  # 5 % clipped highlights / hot pixels
+    target[hot] = 4.0
+    err = {}
+    for name in ("l2", loss):
+        res = fit_focus(target, rgb, depth, CAM, loss=name, **KW)
+        err[name] = abs(float(res.focus_distance) / 1.7 - 1) + abs(
+            float(res.aperture_radius) / 0.08 - 1)
+    assert err[loss] < 0.01
+    assert err[loss] < err["l2"] / 5
+
+
+def test_mask_excludes_outliers():
+    rgb, depth = scene()
+    target = np.array(blur_model(rgb, depth, CAM.replace(**TRUE)))
+    target[:4, :4] = 10.0
+    mask = np.ones((N, N), bool)
+    mask[:4, :4] = False
+    res = fit_focus(target, rgb, depth, CAM, mask=mask, **KW)
+    assert abs(float(res.focus_distance) / 1.7 - 1) < 1e-6
+
+
+def test_batch_matches_single_fits():
+    rgb, depth = scene()
+    truths = [(1.7, 0.08), (3.0, 0.06)]
+    targets = jnp.stack([blur_model(rgb, depth, CAM.replace(focus_distance=d, aperture_radius=a))
+                         for d, a in truths])
+    res = fit_focus_batch(targets, rgb, depth, CAM, **KW)
+    assert res.focus_distance.shape == (2,)
+    for i, (d, a) in enumerate(truths):
+        one = fit_focus(targets[i], rgb, depth, CAM, **KW)
+        assert float(res.focus_distance[i]) == pytest.approx(float(one.focus_distance), rel=1e-9)
+        assert float(res[i].aperture_radius) == pytest.approx(a, rel=1e-6)
+        assert res[i].message == one.message
+
+
+@pytest.mark.slow
+def test_real_defocus_recovery():
+    """End to end with dofjax.defocus (the default model)."""
+    rgb, depth = scene()
+    cam = CAM.replace(aperture_radius=0.1)
+    true = cam.replace(focus_distance=1.7, aperture_radius=0.15)
+    target = dofjax.defocus(rgb, depth, true, window=4.0)
+    res = fit_focus(target, rgb, depth, cam, starts=2, window=4.0, solver="gauss_newton",
+                    bounds={"focus_distance": (0.8, 20.0), "aperture_radius": (0.01, 0.3)})
+    assert abs(float(res.focus_distance) / 1.7 - 1) < 1e-4
+    assert abs(float(res.aperture_radius) / 0.15 - 1) < 1e-4
+
+
+# --- bad input: ValueError before any solver runs ------------------------------------------
+
+
+def _bad(match, **changes):
+    rgb, depth = scene()
+    args = dict(target=rgb, rgb=rgb, depth=depth, camera=CAM)
+    kw = dict(KW)
+    for k, v in changes.items():
+        (args if k in args else kw)[k] = v
+    with pytest.raises(ValueError, match=match):
+        fit_focus(args.pop("target"), args.pop("rgb"), args.pop("depth"), args.pop("camera"), **kw)
+
+
+def test_bad_shapes():
+    _bad("target: expected shape", target=jnp.zeros((N, N - 1, 3)))
+    _bad("rgb: expected shape", rgb=jnp.zeros((N, N, 4)))
+    _bad("depth: expected shape", depth=jnp.ones((N, N, 1)))
+    _bad("camera: width x height", camera=Camera(width=16, height=16, fov=60.0,
+                                                 focus_distance=2.0, aperture_radius=0.1))
+    _bad("mask: expected shape", mask=np.ones((3, 3)))
+
+
+def test_bad_values():
+    rgb, _ = scene()
+    _bad(r"target: 1 non-finite value\(s\).*\(0, 1, 2\)", target=rgb.at[0, 1, 2].set(jnp.nan))
+    _bad("depth: must be > 0", depth=jnp.zeros((N, N)))
+    _bad("no finite depth", depth=jnp.full((N, N), jnp.inf))
+
+
+def test_bad_bounds_and_options():
+    _bad(r"bounds\['focus_distance'\]: inverted", bounds={"focus_distance": (5.0, 1.0)})
+    _bad(r"bounds\['aperture_radius'\]: inverted", bounds={"aperture_radius": (0.2, 0.1)})
+    _bad(r"camera.focus_distance: initial guess 2.5 is outside",
+         bounds={"focus_distance": (3.0, 10.0)})
+    _bad(r"camera.aperture_radius: initial guess 0.05 is outside",
+         bounds={"aperture_radius": (0.1, 0.2)})
+    _bad("bounds: keys", bounds={"fov": (1, 2)})
+    _bad("solver: must be one of", solver="newton")
+    _bad("loss: must be one of", loss="l1")
+    _bad("fixed: names", fixed=("fov",))
+    _bad("fixed: cannot fix both", fixed=("focus_distance", "aperture_radius"))
+    _bad("starts: must be", starts=0)
