@@ -18,7 +18,7 @@ view; `SETTINGS` below gives the focus/aperture/shape settings of each). For eve
   respect to (focus distance, aperture) where differentiable. Lens sampling is timed on the first
   setting of each scene (its cost does not depend on focus or aperture) and its error measured on
   every setting.
-- error: RMSE, PSNR and SSIM (scikit-image; data range = the truth's range) against the truth.
+- error: RMSE, PSNR and SSIM (scikit-image; data range 1 = white) against the truth.
 
 Writes benchmarks/results/time_vs_error.{md,json,png} and prints the table and the headline: "to
 match defocus's error, lens sampling needs N times the time".
@@ -94,7 +94,9 @@ def timed(fn, runs: int):
 def metrics(img, truth) -> dict:
     img = np.asarray(img, dtype=np.float64)
     truth = np.asarray(truth, dtype=np.float64)
-    data_range = float(truth.max() - truth.min()) or 1.0
+    # Linear radiance with 1 = white: a fixed range (the blurred truth's own range can be tiny,
+    # which makes PSNR/SSIM meaningless); HDR values above 1 still count fully in the RMSE.
+    data_range = 1.0
     rmse = float(np.sqrt(np.mean((img - truth) ** 2)))
     psnr = float(peak_signal_noise_ratio(truth, img, data_range=data_range))
     ssim = float(structural_similarity(truth, img, channel_axis=-1, data_range=data_range))
@@ -251,7 +253,7 @@ def write_outputs(results: list[dict], args, headline: list[str]):
     lines = [
         "# Run time versus error",
         "",
-        f"Command: `python benchmarks/time_vs_error.py {' '.join(sys.argv[1:])}`".rstrip(),
+        "Command: `" + f"python benchmarks/time_vs_error.py {args.command}".strip() + "`",
         "",
         f"{args.size}x{args.size} px, float32, ground truth = `render_reference` at "
         f"{args.truth_spp} spp (stratified), sharp input rendered at {args.sharp_spp} spp; "
@@ -261,7 +263,8 @@ def write_outputs(results: list[dict], args, headline: list[str]):
         "`render` (with its layers) that defocus needs; *fwd+grad* is one loss value and its "
         "reverse-mode gradient w.r.t. (focus, aperture). Lens sampling is timed on the first "
         "setting of each scene. *truth noise* is an upper bound on the ground truth's own RMSE: "
-        "RMSE(1024 spp) / sqrt(1 + 4096/1024) assuming 1/spp variance.",
+        f"RMSE({max(args.spps)} spp) / sqrt(1 + {args.truth_spp}/{max(args.spps)}) assuming 1/spp "
+        "variance.",
         "",
         "## Headline",
         "",
@@ -300,17 +303,21 @@ def plot(results: list[dict], path: Path):
     cols = 2
     rows = -(-n // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(11, 3.6 * rows), squeeze=False)
-    markers = "osD^vP*X"
+    names = []
+    for res in results:
+        names += [r["method"] for r in res["rows"] if r["kind"] != "lens" and r["method"] not in names]
+    # One marker and colour per method across all panels.
+    style = {m: ("osD^vP*X"[i % 8], f"C{i % 10}") for i, m in enumerate(names)}
     for ax, res in zip(axes.flat, results, strict=False):
         lens = [r for r in res["rows"] if r["kind"] == "lens"]
         ax.loglog([r["time"] for r in lens], [r["rmse"] for r in lens], "k.-",
-                  label="lens sampling (1..1024 spp)")
+                  label=f"lens sampling ({lens[0]['spp']}..{lens[-1]['spp']} spp)")
         for r in lens:
             ax.annotate(str(r["spp"]), (r["time"], r["rmse"]), fontsize=7,
                         textcoords="offset points", xytext=(3, 3))
-        others = [r for r in res["rows"] if r["kind"] != "lens"]
-        for i, r in enumerate(others):
-            ax.loglog([r["pipeline_time"]], [r["rmse"]], markers[i % len(markers)],
+        for r in (r for r in res["rows"] if r["kind"] != "lens"):
+            marker, colour = style[r["method"]]
+            ax.loglog([r["pipeline_time"]], [r["rmse"]], marker, color=colour,
                       label=f"{r['method']} (render + defocus)" if r["kind"] == "defocus"
                       else f"{r['method']} (render + seed)")
         ax.axhline(res["truth_noise"], color="0.7", lw=0.8, ls=":")
@@ -382,7 +389,20 @@ def main(argv=None) -> int:
     p.add_argument("--scenes", default=",".join(SETTINGS), help="comma-separated scene names")
     p.add_argument("--out", default=str(HERE / "results"), help="output folder")
     p.add_argument("--cache", default=str(HERE / "results" / "cache"), help="ground-truth cache")
+    p.add_argument("--from-json", metavar="PATH",
+                   help="re-write the table, plot and headline from a previous run's JSON")
     args = p.parse_args(argv)
+    args.command = " ".join(sys.argv[1:] if argv is None else argv)
+    if args.from_json:
+        saved = json.loads(Path(args.from_json).read_text())
+        results = saved["results"]
+        for key, value in saved["args"].items():
+            if key not in ("out", "from_json"):
+                setattr(args, key, value)
+        headline = headline_lines(results)
+        write_outputs(results, args, headline)
+        print("\n".join(h.replace("**", "") for h in headline))
+        return 0
     args.spps = [int(s) for s in args.spps.split(",")]
     args.layers = [int(s) for s in args.layers.split(",") if s]
     args.scenes = [s for s in args.scenes.split(",") if s]
@@ -420,6 +440,8 @@ def main(argv=None) -> int:
                 print(f"  {r['method']:<45} time {fmt_ms(r['time']):>9}  pipeline "
                       f"{fmt_ms(r['pipeline_time']):>9}  RMSE {r['rmse']:.4f}  "
                       f"PSNR {r['psnr']:5.1f}  SSIM {r['ssim']:.3f}", flush=True)
+            # Write after every setting, so an interrupted run still leaves its numbers.
+            write_outputs(results, args, headline_lines(results))
     headline = headline_lines(results)
     write_outputs(results, args, headline)
     print()
