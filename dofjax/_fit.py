@@ -7,8 +7,8 @@ and an explicit report of the near/far ambiguity.
 How the fit works:
 - Parameterisation. The CoC `c = A k (1/z - 1/d)` is affine in u = 1/d and linear in A, so the
   solvers work in u and log A, each squeezed into its bounds by MINUIT's map
-  (`u = u_lo + (u_hi - u_lo) (1 + sin p) / 2`), so no solver step can leave the bounds. The bounds are
-  given by the user on d and A (world units) and mapped.
+  (`u = u_lo + (u_hi - u_lo) (1 + sin p) / 2`), so no solver step can leave the bounds. The
+  bounds are given by the user on d and A (world units) and mapped.
 - The sharp RGB-D does not depend on d or A: only the defocus model runs per solver step.
 - Multi-start: a grid of u inside the bounds (plus the user's guess), all solved in one
   `eqx.filter_vmap` batch, on a 2^L-downsampled copy of the images (pixel scale k / 2^L, so the CoC
@@ -645,7 +645,6 @@ def _message(raw: dict, fixed_names: tuple[str, ...], max_condition: float, thre
     if len(spec.free) == 1 and not cond < np.inf:
         notes.append("the image does not depend on the fitted parameter; not identifiable")
         identifiable = False
-    n = float(raw["n"])
     # Noise-free targets have s^2 ~ 0: floor it at (1e-4 of the target's rms)^2 so rounding
     # differences between two exact fits do not count as evidence.
     s2 = max(float(raw["s2"]), (1e-4 * float(raw["rms_target"])) ** 2, 1e-300)
@@ -737,7 +736,8 @@ def fit_focus(
         bounds: {"focus_distance": (lo, hi), "aperture_radius": (lo, hi)}, world units; either
             may be omitted. Defaults: d in (min(z_min, d0) / 2, inf), A in (A0 / 10, 10 A0).
             An aperture lower bound of 0 is taken as 1e-6 of the upper one (log A is fitted).
-        solver: "lm" (Levenberg-Marquardt, default), "gauss_newton", "dogleg" or "bfgs" (optimistix).
+        solver: "lm" (Levenberg-Marquardt, default), "gauss_newton", "dogleg" or "bfgs"
+            (optimistix).
         loss: "l2", or the robust "huber" / "cauchy" (residuals transformed so that sum r_t^2 / 2 =
             sum rho(r)). `loss_scale` (image units) is the robust scale delta; if None it is
             estimated as k * 1.4826 * MAD of the residuals after an l2 fit and refined
