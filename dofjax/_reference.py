@@ -72,7 +72,7 @@ def pixel_offsets(
     return jnp.stack([jnp.where(square, gx, rx), jnp.where(square, gy, ry)], axis=-1).astype(dtype)
 
 
-def _validate(spp, shape, blades, rotation, ratio, chunk, sampler, camera):
+def _validate(spp, shape, blades, rotation, ratio, chunk, sampler, camera, key):
     if isinstance(spp, bool) or not isinstance(spp, int | np.integer) or spp < 1:
         raise ValueError(f"render_reference: spp must be an integer >= 1, got {spp!r}")
     if sampler not in SAMPLERS:
@@ -109,6 +109,12 @@ def _validate(spp, shape, blades, rotation, ratio, chunk, sampler, camera):
         raise ValueError(f"render_reference: chunk must be an integer >= 1 or None, got {chunk!r}")
     if not isinstance(camera, Camera):
         raise TypeError(f"render_reference: camera must be a dofjax.Camera, got {type(camera)}")
+    if not isinstance(key, jax.Array) or not (
+        jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key) or key.dtype == jnp.uint32
+    ):
+        raise TypeError(
+            f"render_reference: key must be a JAX PRNG key (e.g. jax.random.key(seed)), got {key!r}"
+        )
 
 
 def default_chunk(camera: Camera, spp: int) -> int:
@@ -220,8 +226,9 @@ def render_reference(
     Raises:
         ValueError: spp < 1, unknown shape or sampler, blades missing/invalid for the shape,
             ratio <= 0, non-finite rotation, chunk < 1.
+        TypeError: camera not a `Camera`, key not a PRNG key.
     """
-    _validate(spp, shape, blades, rotation, ratio, chunk, sampler, camera)
+    _validate(spp, shape, blades, rotation, ratio, chunk, sampler, camera, key)
     spp = int(spp)
     blades = None if blades is None else int(blades)
     chunk = default_chunk(camera, spp) if chunk is None else int(min(chunk, spp))

@@ -425,6 +425,11 @@ def test_bad_arguments_raise_clear_errors(kwargs, match):
         render_reference(_plane_scene(2.0), _camera(8), key=jax.random.key(0), **kwargs)
 
 
+def test_key_must_be_a_prng_key():
+    with pytest.raises(TypeError, match="key"):
+        render_reference(_plane_scene(2.0), _camera(8), spp=1, key=0)
+
+
 def test_cli_render_reference(tmp_path, capsys):
     """`dofjax render --reference --spp N --seed S` writes the lens-sampling image and metadata."""
     from dofjax._cli import main
