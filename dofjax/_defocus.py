@@ -276,22 +276,47 @@ def _pull_push(values, weight):
     return fill[:, :h, :w]
 
 
+def _local_min(x, radius: int):
+    """Exact min over the (2 radius + 1)^2 neighbourhood (edges: clipped), by shifts."""
+    h, w = x.shape
+    big = jnp.finfo(x.dtype).max
+    xp = jnp.pad(x, radius, constant_values=big)
+    m = x
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            m = jnp.minimum(m, xp[dy: dy + h, dx: dx + w])
+    return m
+
+
 def _hidden_layer(rgb_c, c, window: float):
     """Single-layer RGB-D: an explicit estimate of what lies behind foreground pixels.
 
-    A pixel counts as foreground (weight h -> 1) when its CoC is more than 1-2 px nearer than the
-    farthest CoC within `window` px; the hidden colour and CoC are pull-push fills of the other
-    pixels (the locally far ones), so they sit behind the foreground and get occluded by it.
+    A depth edge is a pixel whose CoC is 1-2 px nearer than the farthest CoC within 2 px
+    (a slanted surface changes far less than that per pixel, so it has none). Hidden pixels are
+    those within ~`window` px of an edge that are also nearer than the farthest CoC around them:
+    the foreground side, where a blurred background reaches under the silhouette. Their hidden
+    colour and CoC are pull-push fills of the locally far pixels, so they sit behind the foreground
+    and get occluded by it wherever it is sharp.
     """
-    c_far = _min_filter(c, int(math.ceil(window)))
-    t = jnp.clip(c - c_far - 1.0, 0.0, 1.0)
-    h = t * t * (3.0 - 2.0 * t)  # C1 smoothstep
-    fill = _pull_push(jnp.concatenate([rgb_c, c[None]], axis=0), 1.0 - h)
+
+    def step(x):
+        t = jnp.clip(x, 0.0, 1.0)
+        return t * t * (3.0 - 2.0 * t)  # C1 smoothstep
+
+    edge = step(c - _local_min(c, 2) - 1.0)
+    near_edge = -_min_filter(-edge, int(math.ceil(window)))  # dilate
+    # the farthest CoC in a wide neighbourhood (4 windows): a large foreground's interior must
+    # not count as background when filling, or its colour bleeds into the hidden layer
+    c_far = _min_filter(c, int(math.ceil(4 * window)))
+    nearer = step(c - c_far - 1.0)
+    h = near_edge * nearer
+    # fill only from locally far pixels (not from a foreground's interior away from its edges)
+    fill = _pull_push(jnp.concatenate([rgb_c, c[None]], axis=0), 1.0 - nearer)
     return fill[:3], fill[3], h
 
 
 def _slice_weights(c, plan, table, dtype):
-    """Per-slice weights (S, H, W) and 'in front of the slice level' masks for CoC map c (H, W).
+    """Per-slice weights (S, H, W) and front fractions (S, H, W) for the CoC map c (H, W).
 
     A source with CoC c is split between the two levels bracketing it, linearly in the second
     moment t(q) of its own soft kernel (q = c^2 + R0^2, `_kernels.moment`), so the blend blurs
@@ -318,11 +343,18 @@ def _slice_weights(c, plan, table, dtype):
     k_lo = jnp.where(j == 0, 0, sgn * j)[None]
     k_hi = (sgn * (j + 1))[None]
     w = jnp.where(k == k_lo, 1.0 - f, 0.0) + jnp.where(k == k_hi, f, 0.0)
-    # front part: the source is nearer than the slice's level. For the upper level of a near
-    # source that is never (unless clamped at the top); for the lower level always; mirrored
-    # for far sources. Level 0 takes near sources as front.
-    front = jnp.where(near[None], k == k_lo, k == k_hi)
-    return w.astype(dtype), front
+    # Front part: the share of the slice's weight that is nearer than the slice's level and so
+    # occludes the slice right behind it. A near source's lower slice (its upper one never), a
+    # far source's upper slice. It ramps in over the first half of the bracket so that crossing
+    # a level (or the focal plane) never switches occlusion on or off abruptly.
+    def ramp(x):
+        x = jnp.clip(2.0 * x, 0.0, 1.0)
+        return x * x * (3.0 - 2.0 * x)
+
+    front = jnp.where(
+        near[None], jnp.where(k == k_lo, ramp(f), 0.0), jnp.where(k == k_hi, ramp(1.0 - f), 0.0)
+    )
+    return w.astype(dtype), front.astype(dtype)
 
 
 def _scale_groups(plan):
@@ -411,10 +443,10 @@ def _core(rgb, inv, alpha, refl, refl_inv, focus_distance, aperture_radius, pixe
         a_back = 0.0
         for wts, front, s_rgb, s_a in weights:
             wa = wts[sel] * s_a[None]
-            fr = front[sel]
+            wf = wa * front[sel]
             col = col + wa[:, None] * s_rgb[None]
-            a_front = a_front + jnp.where(fr, wa, 0.0)
-            a_back = a_back + jnp.where(fr, 0.0, wa)
+            a_front = a_front + wf
+            a_back = a_back + (wa - wf)
         chans = [col, a_front[:, None], a_back[:, None]]
         if config.mirror:
             chans.append(wr[sel][:, None] * refl_c[None])
@@ -425,20 +457,22 @@ def _core(rgb, inv, alpha, refl, refl_inv, focus_distance, aperture_radius, pixe
     # front-to-back compositing with additive coverage (module docstring, step 4)
     num = 0.0
     den = 0.0
-    before_prev = 0.0  # coverage of all slices in front of the previous one
-    prev_a = 0.0
-    prev_front = 0.0
+    gap = 1  # a source never occludes itself across its two slices
+    a_hist, af_hist = [], []
     refl_sum = 0.0
-    for y in ys:
+    for p, y in enumerate(ys):
         b, af, ab = y[:3], y[3], y[4]
         a = af + ab
-        t = jnp.clip(1.0 - before_prev - prev_front, 0.0, 1.0)
+        occl = sum(a_hist[: max(p - gap, 0)], 0.0)
+        if p - gap >= 0:
+            occl = occl + af_hist[p - gap]
+        t = jnp.clip(1.0 - occl, 0.0, 1.0)
         num = num + t[None] * b
         den = den + t * a
         if config.mirror:
             refl_sum = refl_sum + y[5:8]
-        before_prev = before_prev + prev_a
-        prev_a, prev_front = a, af
+        a_hist.append(a)
+        af_hist.append(af)
     out = num / jnp.maximum(den, 1e-6)[None]
     if config.mirror:
         out = out + refl_sum
@@ -578,7 +612,7 @@ def defocus(
         if not (math.isfinite(window) and window > 0):
             raise ValueError(f"defocus: window must be > 0 px, got {window!r}")
         win = bucket_window(window)
-    clamped = max_abs is not None and max_abs > win
+    clamped = max_abs is not None and max_abs > win * (1.0 + 1e-6)
     if clamped:
         warnings.warn(
             f"defocus: the largest CoC radius is {max_abs:.4g} px but the window is {win:g} px "

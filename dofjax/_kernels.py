@@ -29,7 +29,6 @@ R0 = 0.5
 # A window (the largest |c| a compiled function supports) is always one of these values.
 MAGNITUDES = (0.0, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0, 24.0, 32.0, 48.0, 64.0, 96.0, 128.0)
 MAX_WINDOW = MAGNITUDES[-1]
-_COARSE = float(__import__("os").environ.get("DOFJAX_COARSE", "3"))
 
 
 def bucket_window(max_abs_coc: float) -> float:
@@ -199,7 +198,7 @@ def make_plan(window: float, blades, rotation: float, ratio: float) -> Plan:
     down/up-sampling blur is a third of the kernel's and a textured image is 2x farther off.)
     """
     mags = tuple(m for m in MAGNITUDES if m <= window)
-    coarse_max = _COARSE if (blades is None and ratio == 1.0) else 4.0
+    coarse_max = 3.0 if (blades is None and ratio == 1.0) else 4.0
     pos = []
     for m in mags[1:]:
         s = _scale_for(m, coarse_max)
