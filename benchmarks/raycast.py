@@ -1,9 +1,9 @@
-"""Ray caster speed: primary rays per second by primitive type and count, and a ~20-primitive lit scene.
+"""Ray caster speed: primary rays/s by primitive type and count, and a ~20-primitive lit scene.
 
-Each timing is the median of `--repeats` (>= 5) calls after one warm-up call; the warm-up call's extra
-time over the median is reported as compile time. Every timed result is `block_until_ready`'d.
+Each timing is the median of `--repeats` (>= 5) calls after one warm-up call; the warm-up call's
+extra time over the median is reported as compile time. Every timed result is `block_until_ready`'d.
 
-    python benchmarks/raycast.py                      # full table, 512x512 (several minutes on 2 cores)
+    python benchmarks/raycast.py            # full table, 512x512 (minutes on 2 cores)
     python benchmarks/raycast.py --size 128 --counts 1 10   # quick look
 
 Writes the table to benchmarks/results/raycast.md (or --out).
@@ -40,7 +40,7 @@ def _materials(n: int) -> dofjax.Materials:
 
 
 def primitives(kind: str, n: int, seed: int = 0):
-    """n primitives of one type scattered in the camera's view (z in [6, 14]), each a few % of it."""
+    """n primitives of one type scattered in the camera's view (z in [6, 14])."""
     rng = np.random.default_rng(seed)
     z = rng.uniform(6.0, 14.0, n)
     xy = rng.uniform(-0.5, 0.5, (n, 2)) * z[:, None]  # inside a ~53 degree cone
@@ -57,7 +57,12 @@ def primitives(kind: str, n: int, seed: int = 0):
         u /= np.linalg.norm(u, axis=1, keepdims=True)
         v = np.cross(normal, u)
         return dofjax.Planes(
-            point=c * [1, 1, 3], normal=normal, u_axis=u, v_axis=v, uv_scale=np.ones(n), material=mat
+            point=c * [1, 1, 3],
+            normal=normal,
+            u_axis=u,
+            v_axis=v,
+            uv_scale=np.ones(n),
+            material=mat,
         )
     if kind == "quads":
         eu = rng.normal(size=(n, 3)) * size[:, None] * 0.6
@@ -118,10 +123,13 @@ def main(argv=None) -> int:
     ap.add_argument("--size", type=int, default=512, help="image width = height in pixels")
     ap.add_argument("--counts", type=int, nargs="+", default=[1, 10, 100, 1000])
     ap.add_argument("--types", nargs="+", default=list(TYPES), choices=TYPES)
-    ap.add_argument("--mesh", type=int, default=4096, help="extra row: a mesh of this many triangles (0: skip)")
+    ap.add_argument(
+        "--mesh", type=int, default=4096, help="extra row: this many triangles (0: skip)"
+    )
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--float64", action="store_true", help="run in float64 (default float32)")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "raycast.md"))
+    here = os.path.dirname(__file__)
+    ap.add_argument("--out", default=os.path.join(here, "results", "raycast.md"))
     args = ap.parse_args(argv)
     if args.repeats < 5:
         ap.error("--repeats must be >= 5 (the table reports medians of at least 5 runs)")
@@ -147,7 +155,7 @@ def main(argv=None) -> int:
         row("triangles (mesh)", scene, args.mesh)
     scene = lit_scene20()
     row("20 prims + 1 point light", scene, sum(scene.primitive_counts.values()))
-    examples = sorted(glob.glob(os.path.join(os.path.dirname(__file__), "..", "examples", "*.json")))
+    examples = sorted(glob.glob(os.path.join(here, "..", "examples", "*.json")))
     for path in examples:
         try:
             ex = dofjax.load_scene(path)
@@ -157,12 +165,14 @@ def main(argv=None) -> int:
         row(f"example {os.path.basename(path)}", ex, sum(ex.primitive_counts.values()))
 
     dtype = "float64" if args.float64 else "float32"
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     lines = [
         "# Ray caster speed",
         "",
         f"`python benchmarks/raycast.py --size {size}` on {platform.machine()} with "
         f"{os.cpu_count()} CPU cores (shared), jax {jax.__version__}, {dtype}, spp = 1. "
-        f"Median of {args.repeats} runs after a warm-up; compile = warm-up time minus the median.",
+        f"Median of {args.repeats} runs after a warm-up; compile = warm-up time minus the median. "
+        f"1-minute load average at the end: {load:.1f} (above the core count, timings are inflated).",
         "",
         "| scene | primitives | ms / frame | Mrays/s (primary) | compile s |",
         "|---|---:|---:|---:|---:|",

@@ -2,15 +2,17 @@
 
 Every primitive type has two functions:
 
-- `<type>_t(prims, o, d, tmin) -> (N, P)`: the ray parameter of the nearest hit of each ray with each
-  primitive that lies strictly beyond `tmin` (+inf where there is none). Rays are `o + t d` with
-  `o, d` of shape (N, 3) (`d` need not be normalised; t is in units of |d|) and `tmin` of shape (N,).
+- `<type>_t(prims, o, d, tmin) -> (N, P)`: the ray parameter of the nearest hit of each ray with
+  each primitive that lies strictly beyond `tmin` (+inf where there is none). Rays are `o + t d`
+  with `o, d` of shape (N, 3) (`d` need not be normalised; t is in units of |d|) and `tmin` of
+  shape (N,).
   Only these run over all primitives, so they carry no normals or texture coordinates.
 - `<type>_hit(prims, idx, o, d, t, tmin) -> Hit`: geometric normal (unit, not yet facing the ray),
   texture coordinates and their wrap modes for the chosen primitive `idx` (N,) at the hit `t` (N,),
   which must be finite (callers pass a placeholder where the ray missed).
 
-Divisions go through `safe_div` so that a parallel or grazing ray gives a miss (t = +inf), never NaN.
+Divisions go through `safe_div` so that a parallel or grazing ray gives a miss (t = +inf), never
+NaN.
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ def dot(a, b):
 
 
 def unit(v):
-    """v / |v| over a last axis of size 3; the zero vector maps to zero (NaN-free, as `normalize`)."""
+    """v / |v| over a last axis of size 3; zero maps to zero (NaN-free, as `normalize`)."""
     return safe_div(v, safe_sqrt(dot(v, v))[..., None])
 
 
@@ -59,7 +61,8 @@ def max3(v):
 
 
 def _cross(a, b):
-    return jnp.stack(_cross3((a[..., 0], a[..., 1], a[..., 2]), (b[..., 0], b[..., 1], b[..., 2])), -1)
+    split = lambda v: (v[..., 0], v[..., 1], v[..., 2])  # noqa: E731
+    return jnp.stack(_cross3(split(a), split(b)), -1)
 
 
 # The all-pairs functions work on vectors split into x, y, z components of shape (N, 1) (rays) or
@@ -183,7 +186,8 @@ def plane_hit(pl: Planes, idx, o, d, t, tmin) -> Hit:
 def _quad_frame(q: Quads):
     n = _cross(q.edge_u, q.edge_v)
     nn = dot(n, n)
-    # w . a_u = s and w . a_v = t for w = s edge_u + t edge_v (a_u, a_v: the dual basis in the plane).
+    # w . a_u = s and w . a_v = t for w = s edge_u + t edge_v (a_u, a_v: the dual basis in the
+    # plane).
     a_u = safe_div(_cross(q.edge_v, n), nn[:, None])
     a_v = safe_div(_cross(n, q.edge_u), nn[:, None])
     return n, a_u, a_v
@@ -227,7 +231,7 @@ def _slabs(lo, hi, o, d):
 
 
 def box_t(b: Boxes, o, d, tmin) -> Float[Array, "n p"]:
-    """Entry parameter if beyond tmin, else the exit parameter (a ray starting inside hits the wall)."""
+    """Entry parameter if beyond tmin, else the exit (a ray starting inside hits the wall)."""
     lo, hi, oo, dd = _prims3(b.lo), _prims3(b.hi), _rays3(o), _rays3(d)
     slabs = [_slabs(lo[i], hi[i], oo[i], dd[i]) for i in range(3)]
     t_near = jnp.maximum(jnp.maximum(slabs[0][0], slabs[1][0]), slabs[2][0])
@@ -238,7 +242,7 @@ def box_t(b: Boxes, o, d, tmin) -> Float[Array, "n p"]:
 
 
 def box_hit(b: Boxes, idx, o, d, t, tmin) -> Hit:
-    """Normal: +-axis of the slab whose bound is the hit (entry: the latest entry; exit: the first exit)."""
+    """Normal: +-axis of the slab whose bound is the hit (latest entry, or first exit)."""
     del t
     enter, leave = _slabs(b.lo[idx], b.hi[idx], o, d)  # (N, 3) each
     entering = max3(enter) > tmin

@@ -2,7 +2,8 @@
 
 `trace` shades arbitrary rays (the lens-sampling reference uses it); `render` builds pinhole rays
 through the pixels of a `Camera` and is itself built on `trace`'s shading path, so the two never
-disagree. Shading is exactly the Phong model documented on `dofjax.Materials` (DESIGN.md sections 1-3).
+disagree. Shading is exactly the Phong model documented on `dofjax.Materials` (DESIGN.md
+sections 1-3).
 
 What gets compiled depends only on the scene's static structure: absent primitive types trace no
 intersection code, a scene without lights traces no shadow rays, `max_bounces == 0` traces no
@@ -40,7 +41,8 @@ class Traced(eqx.Module):
     """Shaded rays, as returned by `trace`.
 
     Attributes:
-        rgb: (..., 3) radiance along each ray (linear; mirrors included; `scene.background` on a miss).
+        rgb: (..., 3) radiance along each ray (linear; mirrors included; `scene.background` on a
+            miss).
         t: (...) ray parameter of the first hit (in units of |direction|), +inf on a miss.
         reflection: (..., 3) the part of `rgb` that arrived through mirrors (already weighted by the
             mirror reflectivity), or None when `scene.max_bounces == 0`.
@@ -129,7 +131,9 @@ def _local(scene: Scene, p, n, view, material, hit: Hit):
     if scene.textures is not None:
         tid = mats.texture[material]
         use = (tid >= 0) & hit.has_uv
-        looked = _texture(scene.textures, jnp.maximum(tid, 0), hit.uv, hit.wrap_u, hit.wrap_v, dtype)
+        looked = _texture(
+            scene.textures, jnp.maximum(tid, 0), hit.uv, hit.wrap_u, hit.wrap_v, dtype
+        )
         tex = jnp.where(use[:, None], looked, tex)
     diffuse = mats.diffuse[material] * tex
     specular = mats.specular[material]
@@ -147,7 +151,8 @@ def _local(scene: Scene, p, n, view, material, hit: Hit):
         pos = rv > 0
         spec = jnp.where(pos, jnp.where(pos, rv, 1.0) ** shininess, 0.0)
         lit = visible & (ndotl > 0)
-        term = radiance * (diffuse[:, None, :] * ndotl[..., None] + specular[:, None, :] * spec[..., None])
+        shade = diffuse[:, None, :] * ndotl[..., None] + specular[:, None, :] * spec[..., None]
+        term = radiance * shade
         term = jnp.where(lit[..., None], term, 0.0)
         # Sum over lights spelled out for the usual one or two lights (XLA CPU reduces a short
         # middle axis slowly); a reduction only when there are many.
@@ -167,7 +172,8 @@ def _local(scene: Scene, p, n, view, material, hit: Hit):
         out = add(out, l_dir, radiance, visible)
     if scene.directional_lights is not None:
         lights = scene.directional_lights
-        l_dir = jnp.broadcast_to(unit(-lights.direction)[None], (p.shape[0],) + lights.direction.shape)
+        shape = (p.shape[0],) + lights.direction.shape
+        l_dir = jnp.broadcast_to(unit(-lights.direction)[None], shape)
         radiance = jnp.broadcast_to(lights.intensity[None], l_dir.shape)
         o = jnp.broadcast_to(origins[:, None, :], l_dir.shape)
         visible = _shadow_free(scene, o, l_dir, jnp.inf)
@@ -434,6 +440,11 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
         like rgb; and the virtual z-depth of what the mirror shows, `t1 + L2 / |d1|`, at the pixel
         centre); layers when `layers` is given (layer 0 equals rgb / depth at spp = 1; alpha is 1
         where a surface was hit, else 0; rgb is the background where there is no surface).
+
+    Depth peeling counts every surface crossing along the pixel-centre ray, so a sphere or box
+    gives two layers (its front and its back wall) and a quad or plane one. A peeled layer is shaded
+    with the whole scene: surfaces in front of it are removed only from the view ray, and still cast
+    their shadows and appear in mirrors, as the lens-sampling reference would see them.
 
     Raises:
         ValueError: spp or layers not a positive integer.

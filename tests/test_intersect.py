@@ -115,7 +115,7 @@ def test_sphere_hit_normal_and_uv():
     o, d, tm = rays([0, 0, 0], [[0, 0, 1]])
     h = I.sphere_hit(SPHERE, jnp.zeros(1, int), o, d, jnp.asarray([4.0]), tm)
     np.testing.assert_allclose(h.normal[0], [0, 0, -1], atol=1e-12)
-    # Point (0, 0, -1) relative to the centre: longitude atan2(0, -1) = pi -> u = 1; equator v = 1/2.
+    # Point (0, 0, -1) from the centre: longitude atan2(0, -1) = pi -> u = 1; equator: v = 1/2.
     assert float(h.uv[0, 1]) == pytest.approx(0.5)
     assert float(h.uv[0, 0]) % 1.0 == pytest.approx(0.0, abs=1e-12) or float(h.uv[0, 0]) == 1.0
     # North pole: v = 1, no NaN from atan2(0, 0).
@@ -250,7 +250,9 @@ def test_nearest_over_types_and_absent_types():
         mirror=[0.0] * 3,
         texture=[-1] * 3,
     )
-    quad = Quads(corner=[[-1.0, -1.0, 3.0]], edge_u=[[2.0, 0, 0]], edge_v=[[0, 1.0, 0]], material=[2])
+    quad = Quads(
+        corner=[[-1.0, -1.0, 3.0]], edge_u=[[2.0, 0, 0]], edge_v=[[0, 1.0, 0]], material=[2]
+    )
     scene = Scene(materials=mats, spheres=SPHERE, planes=PLANE, quads=quad)
     o, d, tm = rays([0, 0, 0], [[0, -0.1, 1], [0, 0.1, 1], [0, 0.25, 1], [0, 1, -1]])
     t, mat, hit = I.nearest(scene, o, d, tm)
