@@ -199,6 +199,15 @@ def main() -> None:
         if "batch" not in skip:
             lines += ["## Batching: a loop of renders vs one vmapped batch (after compile)", ""]
             lines += batching(size, args.batch) + [""]
+            lines += [
+                "Batching speeds up only the render stage, a small part of a sample (see "
+                "section 1: the defocus target and file writing dominate), and not for every "
+                "kind. A vmapped batch also rounds differently in float32 (last column), so a "
+                "sample's bytes would depend on which samples share its batch, breaking "
+                "order-independent, resumable generation: "
+                "data_gen renders one sample at a time.",
+                "",
+            ]
         if "run" not in skip:
             lines += [f"## End to end: `data_gen.run`, default mixed kinds, {args.count} samples",
                       ""]
@@ -207,8 +216,8 @@ def main() -> None:
             lines += [
                 "Workers are spawned processes: each compiles the renderer and defocus of every "
                 "kind it meets (10-40 s each, see section 1) unless a persistent JAX compilation "
-                "cache (`--jax-cache DIR`) already holds them; the steady-state rate is the "
-                "per-kind one times the number of cores.",
+                "cache (`--jax-cache DIR`) already holds them. More workers help only with free "
+                "cores: on this shared, loaded machine two workers did not beat one.",
                 "",
             ]
     lines.append(f"Load average at the end: {os.getloadavg()[0]:.1f}.")
