@@ -1,0 +1,79 @@
+"""Gradients of the defocus w.r.t. focus distance, aperture and colours against finite differences.
+
+Points chosen to be hard: pixels exactly on the focal plane, a depth edge (occlusion and the
+hidden-background estimate active), aperture exactly 0. float64 (tests/conftest.py).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.test_util import check_grads
+
+from dofjax import Camera, defocus_fn
+
+N = 24
+
+
+def scene():
+    cam = Camera(width=N, height=N, fov=40.0, focus_distance=2.0, aperture_radius=0.5)
+    rng = np.random.default_rng(0)
+    rgb = rng.random((N, N, 3))
+    depth = np.full((N, N), 3.0)
+    depth[6:14, 6:16] = 2.0  # exactly on the focal plane, and a depth edge against 3.0
+    depth[16:22, 4:10] = 1.4  # a near block: blurred foreground over the background
+    return cam, rgb, depth
+
+
+def loss_fn(f):
+    weights = jnp.asarray(np.random.default_rng(1).random((N, N, 3)))
+
+    def loss(d, a):
+        return jnp.sum(weights * f(d, a))
+
+    return loss
+
+
+def test_grads_match_finite_differences_at_hard_points():
+    cam, rgb, depth = scene()
+    f = defocus_fn(rgb, depth, cam, window=4)
+    loss = loss_fn(f)
+    for d, a in ((2.0, 0.5), (2.3, 0.31), (2.0, 0.0)):
+        check_grads(loss, (d, a), order=1, modes=("fwd", "rev"), eps=1e-6, atol=1e-5, rtol=1e-5)
+
+
+def test_central_differences_relative_1e5():
+    cam, rgb, depth = scene()
+    f = defocus_fn(rgb, depth, cam, window=4)
+    loss = loss_fn(f)
+    g = jax.grad(loss, argnums=(0, 1))(2.3, 0.31)
+    fwd = jax.jacfwd(loss, argnums=(0, 1))(2.3, 0.31)
+    h = 1e-6
+    fd_d = (loss(2.3 + h, 0.31) - loss(2.3 - h, 0.31)) / (2 * h)
+    fd_a = (loss(2.3, 0.31 + h) - loss(2.3, 0.31 - h)) / (2 * h)
+    np.testing.assert_allclose([g[0], g[1]], [fd_d, fd_a], rtol=1e-5)
+    np.testing.assert_allclose([fwd[0], fwd[1]], [fd_d, fd_a], rtol=1e-5)
+    assert abs(float(g[0])) > 1e-3 and abs(float(g[1])) > 1e-3  # not trivially zero
+
+
+def test_gradient_on_the_focal_plane_and_at_aperture_zero_is_finite_and_zero():
+    # every pixel on the focal plane: the image is flat in c to first order (rho = sqrt(c^2+R0^2))
+    cam, rgb, _ = scene()
+    f = defocus_fn(rgb, np.full((N, N), 2.0), cam, window=2)
+    loss = loss_fn(f)
+    g = jax.grad(loss, argnums=(0, 1))(2.0, 0.5)
+    assert np.all(np.isfinite(g)) and abs(float(g[0])) < 1e-12 and abs(float(g[1])) < 1e-12
+    _, _, depth = scene()
+    f = defocus_fn(rgb, depth, cam, window=2)
+    g = jax.grad(loss_fn(f), argnums=(0, 1))(2.0, 0.0)
+    assert np.all(np.isfinite(g))
+
+
+def test_colour_gradient():
+    cam, rgb, depth = scene()
+
+    def out(colours):
+        f = defocus_fn(colours, depth, cam, window=4)
+        return jnp.sum(f(2.3, 0.31) ** 2)
+
+    check_grads(out, (jnp.asarray(rgb),), order=1, modes=("rev",), eps=1e-6, atol=1e-5,
+                rtol=1e-5)
