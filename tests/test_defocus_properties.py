@@ -1,0 +1,75 @@
+"""Hypothesis properties of the defocus: identity at aperture 0, constant depth = one fixed-kernel
+convolution (scipy), more aperture never sharper, energy conserved away from the borders."""
+
+import numpy as np
+import scipy.signal
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from dofjax import Camera, defocus_fn
+from dofjax._kernels import R0, soft_kernel
+
+N = 24
+SETTINGS = settings(max_examples=8, deadline=None,
+                    suppress_health_check=[HealthCheck.too_slow])
+
+
+def camera():
+    return Camera(width=N, height=N, fov=40.0, focus_distance=2.0, aperture_radius=1.0)
+
+
+def depth_for_coc(c, cam):
+    ak = float(cam.aperture_radius) * float(cam.pixel_scale)
+    return 1.0 / (1.0 / float(cam.focus_distance) + np.asarray(c, dtype=np.float64) / ak)
+
+
+images = st.integers(0, 2**31 - 1).map(lambda s: np.random.default_rng(s).random((N, N, 3)))
+
+
+@SETTINGS
+@given(images, st.integers(0, 2**31 - 1))
+def test_aperture_zero_is_identity(rgb, seed):
+    depth = np.random.default_rng(seed).uniform(0.3, 50.0, (N, N))
+    f = defocus_fn(rgb, depth, camera(), window=4)
+    np.testing.assert_allclose(np.asarray(f(2.0, 0.0)), rgb, atol=1e-12)
+
+
+@SETTINGS
+@given(images, st.sampled_from([1.0, 2.0, 3.0, 4.0]), st.booleans())
+def test_constant_depth_equals_scipy_convolution(rgb, c, near):
+    cam = camera()
+    c = c if near else -c
+    depth = np.full((N, N), depth_for_coc(c, cam))
+    out = np.asarray(defocus_fn(rgb, depth, cam, window=4)(2.0, 1.0))
+    k = soft_kernel(float(np.hypot(c, R0)))
+    ref = np.stack([scipy.signal.convolve2d(rgb[..., i], k, mode="same") for i in range(3)], -1)
+    m = 5
+    np.testing.assert_allclose(out[m:-m, m:-m], ref[m:-m, m:-m], atol=1e-9)
+
+
+def grad_energy(img):
+    return float(np.sum(np.diff(img, axis=0) ** 2) + np.sum(np.diff(img, axis=1) ** 2))
+
+
+@SETTINGS
+@given(images, st.floats(0.05, 0.9), st.floats(1.05, 2.0), st.integers(0, 2**31 - 1))
+def test_more_aperture_never_sharper(rgb, a, factor, seed):
+    cam = camera()
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(1.2, 4.0)
+    depth = np.full((N, N), z) + np.linspace(0, 0.3, N)[None, :]  # a gentle slant
+    f = defocus_fn(rgb, depth, cam, window=4)
+    e1 = grad_energy(np.asarray(f(2.0, a)))
+    e2 = grad_energy(np.asarray(f(2.0, a * factor)))
+    assert e2 <= e1 * (1 + 1e-9)
+
+
+@SETTINGS
+@given(st.integers(0, 2**31 - 1), st.floats(-4.0, 4.0))
+def test_energy_conserved_away_from_borders(seed, c):
+    cam = camera()
+    rgb = np.zeros((N, N, 3))
+    rgb[8:16, 8:16] = np.random.default_rng(seed).random((8, 8, 3)) * 10.0
+    depth = np.full((N, N), depth_for_coc(c, cam))
+    out = np.asarray(defocus_fn(rgb, depth, cam, window=4)(2.0, 1.0))
+    np.testing.assert_allclose(out.sum(axis=(0, 1)), rgb.sum(axis=(0, 1)), rtol=1e-10)
