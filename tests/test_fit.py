@@ -7,6 +7,8 @@ multi-start, ambiguity, covariance, robust loss) is tested without the defocus m
 time. One test runs the real `dofjax.defocus` end to end.
 """
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -176,6 +178,10 @@ def test_batch_matches_single_fits():
 
 
 @pytest.mark.slow
+@pytest.mark.skipif(
+    not os.environ.get("DOFJAX_FIT_REAL"),
+    reason="compiles the real defocus into the solver (~7 min on 2 busy cores); "
+    "set DOFJAX_FIT_REAL=1 (passed in 427 s when last run)")
 def test_real_defocus_recovery():
     """End to end with dofjax.defocus (the default model)."""
     rgb, depth = scene()
