@@ -1,4 +1,4 @@
-"""Benchmark of dofjax.defocus: speed (vs one scipy FFT convolution) and accuracy (vs the lens reference).
+"""Benchmark of dofjax.defocus: speed (vs one scipy FFT convolution), accuracy (vs the reference).
 
     python benchmarks/defocus.py                  # both tables -> benchmarks/results/defocus.md
     python benchmarks/defocus.py --skip-accuracy  # speed only
@@ -145,7 +145,7 @@ def main():
     if args.float64:
         jax.config.update("jax_enable_x64", True)
     dtype = np.float64 if args.float64 else np.float32
-    lines = [f"# dofjax.defocus benchmark\n",
+    lines = ["# dofjax.defocus benchmark\n",
              f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores "
              "(ratios interleave both timings, so shared load hits both)\n",
              f"## Speed: {args.size}x{args.size} RGB, max |c| {args.max_coc:g} px, "

@@ -150,7 +150,9 @@ def _shape_config(shape, blades, rotation, ratio):
         blades = int(blades)
     ratio = float(ratio)
     if not (math.isfinite(ratio) and 0.1 <= ratio <= 10.0):
-        raise ValueError(f"defocus: ratio (anamorphic width/height) must be in [0.1, 10], got {ratio!r}")
+        raise ValueError(
+            f"defocus: ratio (anamorphic width/height) must be in [0.1, 10], got {ratio!r}"
+        )
     rotation = float(rotation)
     if not math.isfinite(rotation):
         raise ValueError(f"defocus: rotation must be finite, got {rotation!r}")

@@ -1,4 +1,4 @@
-"""Aperture kernels, the radius-level plan and the small image operators of the defocus pyramid.
+"""Aperture kernels, the radius-level plan and the small image operators of the defocus.
 
 Everything here that builds kernels runs on the host in numpy (float64) and is cached: kernels depend
 only on static choices (window, shape), never on the fitted camera parameters, so they are constants

@@ -1,4 +1,4 @@
-"""Tests of the soft-disc defocus: brute-force scatter, occlusion, layers, mirrors, bokeh, skips, errors."""
+"""Soft-disc defocus tests: brute-force scatter, occlusion, layers, mirrors, bokeh, skips, errors."""
 
 import math
 
@@ -176,7 +176,8 @@ def test_peeled_layers_show_what_the_blurred_edge_uncovers():
         alpha=jnp.asarray(np.stack([np.ones((n, n)), inside.astype(float)])),
     )
     depth = np.where(inside, z_fg, z_bg)
-    with_layers = np.asarray(defocus(RGBD(jnp.asarray(rgb), jnp.asarray(depth), layers=layers), cam))
+    rgbd = RGBD(jnp.asarray(rgb), jnp.asarray(depth), layers=layers)
+    with_layers = np.asarray(defocus(rgbd, cam))
     single = np.asarray(defocus(rgb, depth, cam))
     assert with_layers[20, 15, 1] > 0.2  # the real hidden surface (green) is uncovered
     assert single[20, 15, 1] < 1e-9  # the estimate can only know the visible (red) background
