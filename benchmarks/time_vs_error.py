@@ -249,7 +249,9 @@ def write_outputs(results: list[dict], args, headline: list[str]):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "time_vs_error.json", "w") as fh:
-        json.dump(dict(args=vars(args), results=results), fh, indent=1)
+        # No machine paths in the committed file: only the run's parameters.
+        saved = {k: v for k, v in vars(args).items() if k not in ("out", "cache", "from_json")}
+        json.dump(dict(args=saved, results=results), fh, indent=1)
     lines = [
         "# Run time versus error",
         "",
