@@ -72,6 +72,9 @@ from ._kernels import (
 )
 from ._numerics import inverse_depth, safe_div
 from ._rgbd import RGBD, Layers
+from ._sliced import sliced_defocus
+
+METHODS = ("pyramid", "sliced")
 
 SKIP_COC = 0.25  # px: below this everywhere, blurring changes nothing visible
 
@@ -496,7 +499,13 @@ def _sources(rgb, depth, reflection, layers, dtype):
     return lrgb, inverse_depth(jnp.asarray(layers.depth, dtype)), jnp.asarray(layers.alpha, dtype)
 
 
-def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blades, rotation, ratio):
+def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blades, rotation, ratio,
+         method="pyramid"):
+    if method == "sliced":
+        out = sliced_defocus(rgb, depth, camera, window=window, blades=blades, rotation=rotation,
+                             ratio=ratio, reflection=reflection,
+                             reflection_depth=reflection_depth, layers=layers)
+        return out, None
     dtype = rgb.dtype
     src_rgb, src_inv, src_a = _sources(rgb, depth, reflection, layers, dtype)
     mirror = reflection is not None
@@ -537,6 +546,7 @@ def defocus(
     layers: Layers | None = None,
     window: float | None = None,
     return_info: bool = False,
+    method: str = "pyramid",
 ) -> Array | tuple[Array, DefocusInfo]:
     """The image a thin lens takes of a sharp RGB-D render (DESIGN.md section 3).
 
@@ -558,6 +568,9 @@ def defocus(
             8, 12, ..., 128); |c| beyond it is clamped to it. None: chosen from the image (host
             check; not possible under jit). Give it to call `defocus` inside `jax.jit`/`vmap`.
         return_info: also return a `DefocusInfo`.
+        method: "pyramid" (the layered pyramid above) or "sliced" (`_sliced.py`: depth slices
+            composited by FFT products in one `lax.scan`; compiles in seconds, the fitter's
+            default). Both implement the same scatter model (DESIGN.md section 3).
 
     Returns:
         (H, W, 3) defocused linear colour (and the info when asked).
@@ -576,6 +589,8 @@ def defocus(
         layers = rgbd.layers if layers is None else layers
     elif camera is None:
         raise TypeError("defocus: call as defocus(rgb, depth, camera) or defocus(rgbd, camera)")
+    if method not in METHODS:
+        raise ValueError(f"defocus: method must be one of {METHODS}, got {method!r}")
     blades, rotation, ratio = _shape_config(shape, blades, rotation, ratio)
     rgb = _as_array(rgb)
     dtype = rgb.dtype
@@ -623,7 +638,7 @@ def defocus(
             stacklevel=2,
         )
     out, _ = _run(rgb, depth, camera, reflection, reflection_depth, layers, win, blades, rotation,
-                  ratio)
+                  ratio, method)
     if return_info:
         plan = make_plan(win, blades, rotation, ratio)
         return out, DefocusInfo(max_abs, win, False, clamped, len(plan.levels))

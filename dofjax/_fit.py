@@ -379,6 +379,8 @@ class DefocusModel:
     Attributes:
         window: the largest |CoC| (px) supported; larger |c| is clamped to it by the defocus.
         shape, blades, rotation, ratio: aperture shape, as `dofjax.defocus`.
+        method: "sliced" (default: depth slices and FFT products in one `lax.scan`, which
+            compiles in seconds) or "pyramid", as `dofjax.defocus(..., method=...)`.
     """
 
     window: float
@@ -386,12 +388,14 @@ class DefocusModel:
     blades: int | None = None
     rotation: float = 0.0
     ratio: float = 1.0
+    method: str = "sliced"
 
     def __call__(self, rgb, depth, camera):
         from ._defocus import defocus
 
         return defocus(rgb, depth, camera, window=self.window, shape=self.shape,
-                       blades=self.blades, rotation=self.rotation, ratio=self.ratio)
+                       blades=self.blades, rotation=self.rotation, ratio=self.ratio,
+                       method=self.method)
 
 
 def _reach(depth: np.ndarray, weight: np.ndarray, k: float, u_bounds, a_hi: float) -> float:

@@ -44,7 +44,7 @@ def main(argv=None) -> None:
     t0 = time.perf_counter()
     sharp = dofjax.render(scene, camera)
     true_cam = camera.replace(focus_distance=a.focus, aperture_radius=a.aperture)
-    target = dofjax.defocus(sharp.rgb, sharp.depth, true_cam, window=a.window)
+    target = dofjax.defocus(sharp.rgb, sharp.depth, true_cam, window=a.window, method="sliced")
     target = target + a.noise * jax.random.normal(jax.random.key(a.seed), target.shape,
                                                   target.dtype)
     t1 = time.perf_counter()
