@@ -72,7 +72,7 @@ def _slice_weights(c, levels: np.ndarray):
     """
     asc = np.sort(levels)
     q_lv = np.sign(asc) * asc * asc
-    c = jnp.clip(c, asc[0], asc[-1])
+    c = jnp.clip(c, jnp.asarray(asc[0], c.dtype), jnp.asarray(asc[-1], c.dtype))
     q = jnp.sign(c) * c * c
     idx = jnp.clip(jnp.searchsorted(jnp.asarray(q_lv, c.dtype), q, side="right") - 1, 0,
                    len(asc) - 2)
