@@ -97,7 +97,8 @@ def main(argv=None) -> None:
     prefix = a.out or (os.path.splitext(a.target)[0] + ".fit")
     with open(prefix + ".json", "w") as f:
         json.dump({"target": a.target, "truth": truth, "result": result.as_dict()}, f, indent=1)
-    fitted = dofjax.defocus(rgb, depth, result.camera, window=result_window(a.window, result))
+    fitted = dofjax.defocus(rgb, depth, result.camera, window=result_window(a.window, result),
+                            method="sliced")  # the model fit_focus fitted
     strip = np.concatenate([np.asarray(target), np.asarray(fitted),
                             4.0 * np.abs(np.asarray(fitted) - np.asarray(target))], axis=1)
     dofjax.write_png(prefix + ".png", strip)
