@@ -35,6 +35,8 @@ def main(argv=None) -> None:
     p.add_argument("--window", type=float, default=8.0)
     p.add_argument("--diff-step", type=float, default=1e-3, help="scipy relative FD step")
     p.add_argument("--scipy-only", action="store_true", help="skip the dofjax fit")
+    p.add_argument("--method", default="sliced", choices=("sliced", "pyramid"),
+                   help="defocus method for the target, the fit and the scipy residual")
     a = p.parse_args(argv)
     scene_path = os.path.join(HERE, "..", "examples", "quads.json")
     scene = dofjax.load_scene(scene_path)
@@ -45,9 +47,10 @@ def main(argv=None) -> None:
                         up=c0.up, **guess)
     sharp = dofjax.render(scene, cam)
     rgb, depth = sharp.rgb, sharp.depth
-    target = dofjax.defocus(rgb, depth, cam.replace(**truth), window=a.window)
+    target = dofjax.defocus(rgb, depth, cam.replace(**truth), window=a.window, method=a.method)
     bounds = {"focus_distance": (1.0, 50.0), "aperture_radius": (0.004, 0.1)}
-    kw = dict(bounds=bounds, window=a.window, starts=a.starts, rtol=1e-6, atol=1e-9)
+    kw = dict(bounds=bounds, window=a.window, starts=a.starts, rtol=1e-6, atol=1e-9,
+              defocus_options={"method": a.method})
 
     t = time.perf_counter()
     res = None if a.scipy_only else dofjax.fit_focus(target, rgb, depth, cam, **kw)
@@ -67,7 +70,7 @@ def main(argv=None) -> None:
     @jax.jit
     def residual(x):
         c = cam.replace(focus_distance=1.0 / x[0], aperture_radius=jnp.exp(x[1]))
-        return (dofjax.defocus(rgb, depth, c, window=a.window) - target).ravel()
+        return (dofjax.defocus(rgb, depth, c, window=a.window, method=a.method) - target).ravel()
 
     x0 = np.array([1.0 / guess["focus_distance"], np.log(guess["aperture_radius"])])
     lo = [1.0 / bounds["focus_distance"][1], np.log(bounds["aperture_radius"][0])]

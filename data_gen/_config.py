@@ -28,6 +28,8 @@ from ._noise import NOISE_MODELS, NOISE_PARAMS
 KINDS = ("planes", "occluders", "mirror", "highlights", "wide_depth", "single_plane")
 PROCEDURAL_TEXTURES = ("checker", "grid", "noise", "stripes")
 TARGET_METHODS = ("defocus", "reference")
+# "sliced" is the model `dofjax.fit_focus` fits by default, so noise-free targets are exact for it
+DEFOCUS_METHODS = ("sliced", "pyramid")
 # The most textures one scene of any kind uses (occluders: background, 2 quads, 2 spheres).
 MAX_TEXTURES_PER_SCENE = 5
 CAMERA_MODELS = ("thin_lens", "photographic")
@@ -35,7 +37,7 @@ CAMERA_MODELS = ("thin_lens", "photographic")
 _TOP_KEYS = ("size", "kinds", "scene", "camera", "target", "noise")
 _SCENE_KEYS = ("depth_range", "texture_size", "skimage_textures", "procedural_textures",
                "skimage_fraction")
-_TARGET_KEYS = ("method", "layers", "sharp_spp", "reference_spp", "window")
+_TARGET_KEYS = ("method", "defocus_method", "layers", "sharp_spp", "reference_spp", "window")
 _CAMERA_DEFAULTS = {
     "thin_lens": {
         "fov": [35.0, 60.0],
@@ -276,6 +278,11 @@ def validate_config(cfg: Mapping) -> dict:
     if target["method"] not in TARGET_METHODS:
         raise ConfigError(
             f"config.target.method: must be one of {list(TARGET_METHODS)}, got {target['method']!r}"
+        )
+    if target["defocus_method"] not in DEFOCUS_METHODS:
+        raise ConfigError(
+            f"config.target.defocus_method: must be one of {list(DEFOCUS_METHODS)}, got "
+            f"{target['defocus_method']!r}"
         )
     target["layers"] = _int(target["layers"], "config.target.layers", 1)
     target["sharp_spp"] = _int(target["sharp_spp"], "config.target.sharp_spp", 1)

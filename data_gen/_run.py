@@ -31,7 +31,8 @@ hidden peeled layers included), ``aperture_capped`` (the blur bounds narrowed th
 and ``focal_length`` / ``sensor_width`` / ``f_number`` (photographic cameras) or
 ``reference_key`` (reference targets: the `jax.random.key` seed). The EXR files carry the same
 truth plus ``kind``, ``identifiable``, ``noise``, ``noise_model``, ``seed``, ``index``,
-``method``, ``spp`` and ``role`` ("sharp" or "target") as ``dofjax:`` attributes. Noise can be
+``method``, ``defocus_method`` ("sliced" or "pyramid", config.target.defocus_method; None for
+reference targets), ``spp`` and ``role`` ("sharp" or "target") as ``dofjax:`` attributes. Noise can be
 reproduced from the record: ``apply_noise(clean, record["noise"], sample_rng(seed, index,
 "noise_pixels"))``, where ``clean`` is the target EXR's layer "clean" (absent for model "none").
 """
@@ -286,7 +287,8 @@ def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = Non
         # A fixed window (>= max_coc_px, checked by the config) compiles the defocus once per
         # kind; with None, defocus sizes it from each image's largest blur in buckets, which
         # costs one 5-15 s compile per new bucket: slower for data sets of a few hundred samples.
-        clean = dofjax.defocus(rgbd, camera, window=target_cfg["window"])
+        clean = dofjax.defocus(rgbd, camera, window=target_cfg["window"],
+                               method=target_cfg["defocus_method"])
         spp = target_cfg["sharp_spp"]
     else:
         key_seed = sample_uint32(seed, index, "reference")
@@ -330,6 +332,7 @@ def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = Non
         "truth": truth,
         "noise": noise,
         "method": method,
+        "defocus_method": target_cfg["defocus_method"] if method == "defocus" else None,
         "spp": spp,
     }
 
@@ -356,6 +359,7 @@ def generate_sample(out_dir: str, index: int, seed: int, cfg: Mapping,
         "seed": int(seed),
         "index": int(index),
         "method": s["method"],
+        "defocus_method": s["defocus_method"],
         "spp": int(s["spp"]),
         "generator_version": FORMAT_VERSION,
     }
