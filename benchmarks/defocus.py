@@ -43,7 +43,7 @@ def _median_ratio(fn, base, repeats):
     return float(np.median(ts)), float(np.median(bs))
 
 
-def speed(size: int, max_coc: float, repeats: int, dtype):
+def speed(size: int, max_coc: float, repeats: int, dtype, method="pyramid"):
     rng = np.random.default_rng(0)
     img = rng.random((size, size, 3)).astype(dtype)
     cam = dofjax.Camera(width=size, height=size, fov=40.0, focus_distance=2.0, aperture_radius=0.1)
@@ -60,7 +60,7 @@ def speed(size: int, max_coc: float, repeats: int, dtype):
     def base():
         scipy.signal.fftconvolve(img, disc[:, :, None], mode="same")
 
-    f = dofjax.defocus_fn(img, depth, cam, window=max_coc)
+    f = dofjax.defocus_fn(img, depth, cam, window=max_coc, method=method)
     p = jnp.asarray([2.0, 0.1], dtype)
     target = jnp.asarray(img)
     fwd = jax.jit(lambda p: f(p[0], p[1]))
@@ -76,7 +76,8 @@ def speed(size: int, max_coc: float, repeats: int, dtype):
         t, b = _median_ratio(lambda: jax.block_until_ready(fn(p)), base, repeats)
         if t_fwd is None:
             t_fwd = (t, b)
-        rows.append((name, t * 1e3, b * 1e3, t / b, (t / b) / (t_fwd[0] / t_fwd[1]), compile_s))
+        rows.append((f"{method}: {name}", t * 1e3, b * 1e3, t / b, (t / b) / (t_fwd[0] / t_fwd[1]),
+                     compile_s))
     return rows
 
 
@@ -119,9 +120,14 @@ def accuracy(size: int, spp: int, max_coc: float, layers: int, seed: int):
         with_layers = dofjax.defocus(sharp, cam)
         single = dofjax.defocus(sharp.rgb, sharp.depth, cam, reflection=sharp.reflection,
                                 reflection_depth=sharp.reflection_depth)
+        sliced_layers = dofjax.defocus(sharp, cam, method="sliced")
+        sliced_single = dofjax.defocus(sharp.rgb, sharp.depth, cam, reflection=sharp.reflection,
+                                       reflection_depth=sharp.reflection_depth, method="sliced")
         seed_img = seed_defocus(sharp.rgb, sharp.depth, cam)
-        for method, img in (("dofjax, peeled layers", with_layers),
-                            ("dofjax, single-layer RGB-D", single),
+        for method, img in (("dofjax pyramid, peeled layers", with_layers),
+                            ("dofjax pyramid, single-layer RGB-D", single),
+                            ("dofjax sliced, peeled layers", sliced_layers),
+                            ("dofjax sliced, single-layer RGB-D", sliced_single),
                             ("seed (Yu 2004, before)", seed_img),
                             ("reference noise floor (2nd seed)", ref2)):
             rows.append((name, method) + _metrics(img, ref))
@@ -140,6 +146,7 @@ def main():
     ap.add_argument("--spp", type=int, default=256)
     ap.add_argument("--layers", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--methods", default="pyramid,sliced", help="defocus methods to time")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "defocus.md"))
     args = ap.parse_args()
     if args.float64:
@@ -152,7 +159,9 @@ def main():
              f"{np.dtype(dtype).name}\n",
              "| what | median ms | scipy fftconvolve ms | x scipy | x forward | compile s |",
              "|---|---|---|---|---|---|"]
-    for name, t, b, r, rf, comp in speed(args.size, args.max_coc, args.repeats, dtype):
+    rows = [row for method in args.methods.split(",")
+            for row in speed(args.size, args.max_coc, args.repeats, dtype, method=method)]
+    for name, t, b, r, rf, comp in rows:
         lines.append(f"| {name} | {t:.1f} | {b:.1f} | {r:.2f} | {rf:.2f} | {comp:.1f} |")
     print("\n".join(lines), flush=True)
     if not args.skip_accuracy:

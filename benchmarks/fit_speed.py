@@ -106,7 +106,7 @@ def main(argv=None) -> None:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     ratio = scipy_s / ours
-    text = (f"# fit speed, {a.size}x{a.size} quads.json, window {a.window} px, "
+    text = (f"# fit speed, {a.size}x{a.size} quads.json, window {a.window} px, defocus method {a.method}, "
             f"{os.cpu_count()} CPUs (load average {os.getloadavg()[0]:.1f})\n\n"
             f"truth d={truth['focus_distance']} A={truth['aperture_radius']}, guess "
             f"d={guess['focus_distance']} A={guess['aperture_radius']}; jax x64="

@@ -658,8 +658,11 @@ def defocus_fn(
     reflection: ArrayLike | None = None,
     reflection_depth: ArrayLike | None = None,
     layers: Layers | None = None,
+    method: str = "pyramid",
 ):
     """A pure, jittable `f(focus_distance, aperture_radius) -> (H, W, 3)` for fitting.
+
+    `method` is "pyramid" or "sliced", as in `defocus`.
 
     The image, depth, field of view and shape are validated once here (host) and closed over;
     `f` runs only the jitted defocus core with a fixed window, so it can be `jax.jit`-ed,
@@ -699,6 +702,8 @@ def defocus_fn(
     window = float(window)
     if not (math.isfinite(window) and window > 0):
         raise ValueError(f"defocus_fn: window must be > 0 px, got {window!r}")
+    if method not in METHODS:
+        raise ValueError(f"defocus_fn: method must be one of {METHODS}, got {method!r}")
     win = bucket_window(window)
     pixel_scale = camera.pixel_scale
 
@@ -707,7 +712,7 @@ def defocus_fn(
 
     def f(focus_distance, aperture_radius):
         out, _ = _run(rgb, depth, _cam(focus_distance, aperture_radius), reflection,
-                      reflection_depth, layers, win, blades, rotation, ratio)
+                      reflection_depth, layers, win, blades, rotation, ratio, method)
         return out
 
     def max_abs_coc(focus_distance, aperture_radius):
