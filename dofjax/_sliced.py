@@ -100,28 +100,41 @@ def _slice_weights(c, levels: np.ndarray):
     return front[::-1], back[::-1]
 
 
-def _sources(rgb, depth, reflection, reflection_depth, layers, camera):
-    """(colour, signed CoC, coverage, counts-as-coverage) for every source of light."""
+def surface_sources(rgb, depth, reflection, layers, camera):
+    """(colour, z-depth, coverage) of every surface that can be seen through the lens.
+
+    The visible image (minus the mirror's reflected radiance, which is its own source) covers every
+    pixel. Peeled layers k >= 1 add the surfaces hidden behind it, and the background where the ray
+    escapes after exactly k surfaces (layer alpha is 0 there, but something is seen). A hidden
+    surface matters only where its blur differs from the visible one's by more than a pixel: closer
+    than that (e.g. the back wall of a closed object) it would add nothing but double counting.
+    """
     ones = jnp.ones(depth.shape, rgb.dtype)
     surface = rgb if reflection is None else rgb - reflection
-    c0 = coc_radius(depth, camera).astype(rgb.dtype)
-    out = [(surface, c0, ones, True)]
+    out = [(surface, depth, ones)]
+    if layers is not None:
+        c0 = coc_radius(depth, camera)
+        background = jnp.full_like(depth, jnp.inf)
+        c_inf = coc_radius(background, camera)
+        for k in range(1, layers.depth.shape[0]):
+            ck = coc_radius(layers.depth[k], camera)
+            useful = jnp.clip(jnp.abs(ck - c0) - 1.0, 0.0, 1.0).astype(rgb.dtype)
+            out.append((layers.rgb[k], layers.depth[k], layers.alpha[k] * useful))
+            escaped = (1.0 - layers.alpha[k]) * layers.alpha[k - 1]
+            useful = jnp.clip(jnp.abs(c_inf - c0) - 1.0, 0.0, 1.0).astype(rgb.dtype)
+            out.append((layers.rgb[k], background, escaped * useful))
+    return out
+
+
+def _sources(rgb, depth, reflection, reflection_depth, layers, camera):
+    """(colour, signed CoC, coverage, counts-as-coverage) for every source of light; the mirror's
+    reflected radiance is colour that does not cover (the mirror surface supplies coverage)."""
+    out = [(colour, coc_radius(z, camera).astype(rgb.dtype), alpha, True)
+           for colour, z, alpha in surface_sources(rgb, depth, reflection, layers, camera)]
     if reflection is not None:
+        ones = jnp.ones(depth.shape, rgb.dtype)
         out.append((reflection, coc_radius(reflection_depth, camera).astype(rgb.dtype), ones,
                     False))
-    if layers is not None:
-        for k in range(1, layers.depth.shape[0]):
-            # A hidden surface matters only where its blur differs from the visible one's by more
-            # than a pixel; closer than that it would sit in a neighbouring slice, unoccluded, and
-            # be counted twice.
-            ck = coc_radius(layers.depth[k], camera).astype(rgb.dtype)
-            useful = jnp.clip(jnp.abs(ck - c0) - 1.0, 0.0, 1.0)
-            out.append((layers.rgb[k], ck, layers.alpha[k] * useful, True))
-            # the background, where the ray escapes after exactly k surfaces
-            c_inf = coc_radius(jnp.full_like(depth, jnp.inf), camera).astype(rgb.dtype)
-            escaped = (1.0 - layers.alpha[k]) * layers.alpha[k - 1]
-            useful = jnp.clip(jnp.abs(c_inf - c0) - 1.0, 0.0, 1.0)
-            out.append((layers.rgb[k], c_inf, escaped * useful, True))
     return out
 
 
