@@ -532,6 +532,32 @@ def _as_array(x, dtype=None):
     return x.astype(dtype)
 
 
+def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, method, shape, blades,
+            rotation, ratio):
+    """Unpack `(rgb, depth, camera)` or `(rgbd, camera)`, convert and validate on the host: the one
+    input path of `defocus` and `defocus_fn`."""
+    if isinstance(rgb, RGBD):
+        if camera is not None:
+            raise TypeError(f"{name}(rgbd, camera): pass the camera as the second argument only")
+        rgbd, camera = rgb, depth
+        rgb, depth = rgbd.rgb, rgbd.depth
+        reflection = rgbd.reflection if reflection is None else reflection
+        reflection_depth = rgbd.reflection_depth if reflection_depth is None else reflection_depth
+        layers = rgbd.layers if layers is None else layers
+    elif camera is None:
+        raise TypeError(f"{name}: call as {name}(rgb, depth, camera) or {name}(rgbd, camera)")
+    if method not in METHODS:
+        raise ValueError(f"{name}: method must be one of {METHODS}, got {method!r}")
+    blades, rotation, ratio = _shape_config(shape, blades, rotation, ratio)
+    rgb = _as_array(rgb)
+    dtype = rgb.dtype
+    depth = _as_array(depth, dtype)
+    reflection = _as_array(reflection, dtype)
+    reflection_depth = _as_array(reflection_depth, dtype)
+    _validate(rgb, depth, camera, reflection, reflection_depth, layers)
+    return rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio
+
+
 def defocus(
     rgb: ArrayLike | RGBD,
     depth: ArrayLike | Camera,
@@ -579,25 +605,9 @@ def defocus(
         ValueError: shape mismatches, non-finite colours, depth <= 0 or NaN, negative aperture,
             bad shape parameters. A clamped CoC is a `DefocusWarning`, not an error.
     """
-    if isinstance(rgb, RGBD):
-        if camera is not None:
-            raise TypeError("defocus(rgbd, camera): pass the camera as the second argument only")
-        rgbd, camera = rgb, depth
-        rgb, depth = rgbd.rgb, rgbd.depth
-        reflection = rgbd.reflection if reflection is None else reflection
-        reflection_depth = rgbd.reflection_depth if reflection_depth is None else reflection_depth
-        layers = rgbd.layers if layers is None else layers
-    elif camera is None:
-        raise TypeError("defocus: call as defocus(rgb, depth, camera) or defocus(rgbd, camera)")
-    if method not in METHODS:
-        raise ValueError(f"defocus: method must be one of {METHODS}, got {method!r}")
-    blades, rotation, ratio = _shape_config(shape, blades, rotation, ratio)
-    rgb = _as_array(rgb)
-    dtype = rgb.dtype
-    depth = _as_array(depth, dtype)
-    reflection = _as_array(reflection, dtype)
-    reflection_depth = _as_array(reflection_depth, dtype)
-    _validate(rgb, depth, camera, reflection, reflection_depth, layers)
+    rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio = _inputs(
+        "defocus", rgb, depth, camera, reflection, reflection_depth, layers, method, shape, blades,
+        rotation, ratio)
 
     concrete = all(
         _is_concrete(v)
@@ -683,27 +693,15 @@ def defocus_fn(
         f(focus_distance, aperture_radius): world units (scalars or 0-d arrays) -> image. The
         function also has `.window` (px) and `.max_abs_coc(focus, aperture)` (jittable).
     """
-    if isinstance(rgb, RGBD):
-        rgbd, camera = rgb, depth
-        rgb, depth = rgbd.rgb, rgbd.depth
-        reflection = rgbd.reflection if reflection is None else reflection
-        reflection_depth = rgbd.reflection_depth if reflection_depth is None else reflection_depth
-        layers = rgbd.layers if layers is None else layers
-    blades, rotation, ratio = _shape_config(shape, blades, rotation, ratio)
-    rgb = _as_array(rgb)
-    dtype = rgb.dtype
-    depth = _as_array(depth, dtype)
-    reflection = _as_array(reflection, dtype)
-    reflection_depth = _as_array(reflection_depth, dtype)
-    _validate(rgb, depth, camera, reflection, reflection_depth, layers)
+    rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio = _inputs(
+        "defocus_fn", rgb, depth, camera, reflection, reflection_depth, layers, method, shape,
+        blades, rotation, ratio)
     if window is None:
         c = np.abs(np.asarray(jnp.asarray(_coc_host(depth, camera))))
         window = max(2.0 * float(c.max()), 1.0)
     window = float(window)
     if not (math.isfinite(window) and window > 0):
         raise ValueError(f"defocus_fn: window must be > 0 px, got {window!r}")
-    if method not in METHODS:
-        raise ValueError(f"defocus_fn: method must be one of {METHODS}, got {method!r}")
     win = bucket_window(window)
     pixel_scale = camera.pixel_scale
 

@@ -146,3 +146,11 @@ def test_bad_method_is_rejected():
     with pytest.raises(ValueError, match="method must be one of"):
         dofjax.defocus(np.zeros((4, 4, 3)), np.ones((4, 4)), camera(width=4, height=4),
                        method="fast")
+
+
+def test_defocus_fn_checks_its_inputs_like_defocus():
+    rgb, depth = np.zeros((4, 4, 3)), np.ones((4, 4))
+    with pytest.raises(TypeError, match=r"defocus_fn: call as defocus_fn\(rgb, depth, camera\)"):
+        dofjax.defocus_fn(rgb, depth, window=2)
+    with pytest.raises(ValueError, match="defocus_fn: method must be one of"):
+        dofjax.defocus_fn(rgb, depth, camera(width=4, height=4), window=2, method="fast")
