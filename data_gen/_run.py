@@ -198,12 +198,6 @@ def _write_text_atomic(path: str, text: str) -> None:
     os.replace(tmp, path)
 
 
-def _write_exr_atomic(path: str, writer, *args, **kwargs) -> None:
-    tmp = _tmp_name(path)
-    writer(tmp, *args, **kwargs)
-    os.replace(tmp, path)
-
-
 def _json_dumps(obj) -> str:
     return json.dumps(obj, sort_keys=True, allow_nan=False)
 
@@ -378,11 +372,11 @@ def generate_sample(out_dir: str, index: int, seed: int, cfg: Mapping,
         },
     }
     _write_text_atomic(path["scene"], json.dumps(scene_doc, indent=1, sort_keys=True) + "\n")
-    _write_exr_atomic(path["sharp"], dofjax.write_rgbd, s["rgbd"],
-                      metadata={**meta, "role": "sharp"})
+    # dofjax's EXR writers are atomic themselves (temporary name + rename)
+    dofjax.write_rgbd(path["sharp"], s["rgbd"], metadata={**meta, "role": "sharp"})
     extra = None if s["noise"]["model"] == "none" else {"clean": s["clean"]}
-    _write_exr_atomic(path["target"], dofjax.write_exr, s["target"],
-                      metadata={**meta, "role": "target"}, extra=extra)
+    dofjax.write_exr(path["target"], s["target"], metadata={**meta, "role": "target"},
+                     extra=extra)
     record = {
         "index": int(index),
         "seed": int(seed),
