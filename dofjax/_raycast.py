@@ -25,7 +25,23 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._camera import Camera
-from ._intersect import Hit, dot, materialise, max3, nearest, nearest_t, unit
+from ._intersect import (
+    PRIMITIVES,
+    Hit,
+    _cross3,
+    _dot3,
+    _prims3,
+    _rays3,
+    _slabs,
+    _sub3,
+    dot,
+    materialise,
+    max3,
+    nearest,
+    nearest_t,
+    plane_t,
+    unit,
+)
 from ._numerics import safe_div, safe_sqrt
 from ._rgbd import RGBD, Layers
 from ._scene import Scene
@@ -245,24 +261,98 @@ def _radiance(scene: Scene, o, d, tmin):
     return direct + reflection, t, reflection, reflection_t
 
 
-def _peel(scene: Scene, o, d, layers: int):
-    """The first `layers` surfaces along each ray: each layer restarts beyond the previous hit.
+def _front_t(scene: Scene, o, d, tmin):
+    """Nearest t beyond `tmin` of a surface *entered* from the ray's side (flat (N,) rays).
 
-    Returns (rgb, t, reflection, reflection_t) with a layer axis at position 1. The layers run as
-    one `lax.scan` (shading compiled once); layer 0 is exactly `_radiance` from the ray origin.
+    Closed primitives count only where the ray enters them: a sphere's near root, a box's entry
+    slab, a triangle whose winding normal `(v1 - v0) x (v2 - v0)` faces the ray (the outward side
+    of a counter-clockwise mesh, as OBJ files wind them). Quads (two-sided cards) and planes count
+    from either side. +inf where there is none.
+    """
+    o, d = materialise(o, d)
+    best = jnp.full((o.shape[0],), jnp.inf, dtype=d.dtype)
+    oo, dd, tm = _rays3(o), _rays3(d), tmin[:, None]
+    for name, (t_fn, _) in PRIMITIVES.items():
+        prims = getattr(scene, name)
+        if prims is None or prims.material.shape[0] == 0:
+            continue
+        if name == "spheres":
+            t = t_fn(prims, o, d, tmin)
+            tf = jnp.where(jnp.isfinite(t), t, 0.0)
+            c = _prims3(prims.center)
+            # the root is an exit where the hit point moves away from the centre along d
+            radial = sum((oo[i] + tf * dd[i] - c[i]) * dd[i] for i in range(3))
+            t = jnp.where(radial > 0, jnp.inf, t)
+        elif name == "boxes":
+            lo, hi = _prims3(prims.lo), _prims3(prims.hi)
+            slabs = [_slabs(lo[i], hi[i], oo[i], dd[i]) for i in range(3)]
+            t_near = jnp.maximum(jnp.maximum(slabs[0][0], slabs[1][0]), slabs[2][0])
+            t_far = jnp.minimum(jnp.minimum(slabs[0][1], slabs[1][1]), slabs[2][1])
+            t = jnp.where((t_near <= t_far) & (t_near > tm), t_near, jnp.inf)
+        elif name == "triangles":
+            v0 = _prims3(prims.v0)
+            n = _cross3(_sub3(_prims3(prims.v1), v0), _sub3(_prims3(prims.v2), v0))
+            t = jnp.where(_dot3(dd, n) < 0, t_fn(prims, o, d, tmin), jnp.inf)
+        else:
+            t = t_fn(prims, o, d, tmin)
+        best = jnp.minimum(best, jnp.min(t, axis=-1))
+    return best
+
+
+def _plane_t(scene: Scene, o, d, tmin):
+    """Nearest plane hit beyond `tmin` (+inf where none, or when the scene has no planes)."""
+    planes = scene.planes
+    if planes is None or planes.material.shape[0] == 0:
+        return jnp.full((o.shape[0],), jnp.inf, dtype=d.dtype)
+    o, d = materialise(o, d)
+    return jnp.min(plane_t(planes, o, d, tmin), axis=-1)
+
+
+def _peel(scene: Scene, o, d, layers: int):
+    """The first `layers` things seen along each ray, front to back (DESIGN.md section 3).
+
+    Layer 0 is exactly `_radiance` from the ray origin. Layer k >= 1 is the next surface *entered*
+    from the camera side (`_front_t`: the back wall of a sphere, box or closed mesh is skipped),
+    shaded with the whole scene. A ray that escapes shows the background: that layer has depth
+    +inf and alpha 1 (it is seen), and nothing follows it. An infinite plane is opaque: nothing
+    follows it either, and neither does a layer-0 hit on the inside of a closed object (the eye
+    is inside it). Layers after the end have alpha 0, depth +inf and the background colour.
+
+    Returns (rgb, t, reflection, reflection_t, alpha) with a layer axis at position 1. The layers
+    run as one `lax.scan` (shading compiled once).
     """
     base = _tmin(o, d)
     if layers == 1:
-        return tuple(x[:, None] for x in _radiance(scene, o, d, base))
+        out = _radiance(scene, o, d, base)
+        return tuple(x[:, None] for x in out) + (jnp.ones_like(base)[:, None],)
     rel = _eps_scale(d.dtype)
+    inf = jnp.full_like(base, jnp.inf)
 
-    def layer(tmin, _):
-        out = _radiance(scene, o, d, tmin)
+    def layer(carry, k):
+        tmin, ended = carry
+        t_front = _front_t(scene, o, d, tmin)
+        # Hidden layers start just short of the surface `_front_t` found, so that the shading path
+        # (the plain nearest hit) finds exactly that surface; back-facing hits before it are
+        # skipped. Layer 0 is the plain render.
+        start = jnp.where(
+            jnp.isfinite(t_front), jnp.maximum(tmin, t_front * (1.0 - rel)), jnp.inf
+        )
+        start = jnp.where(k == 0, base, start)
+        start = jnp.where(ended, inf, start)
+        rgb, t, refl, refl_t = _radiance(scene, o, d, start)
+        hit = jnp.isfinite(t)
+        # What ends the ray: the background, an opaque plane, or (layer 0) the inside of a closed
+        # object, i.e. a hit that is not the nearest entered surface.
+        inside = (k == 0) & hit & (t_front > t * (1.0 + rel) + base)
+        blocked = hit & ((_plane_t(scene, o, d, start) <= t) | inside)
+        alpha = jnp.where(ended, 0.0, 1.0).astype(d.dtype)
         # Relative plus absolute epsilon: skips the surface just found (and rounding of its t)
         # without skipping a distinct surface farther than ~eps^(2/3) relative.
-        return out[1] * (1.0 + rel) + base, out
+        next_tmin = jnp.where(hit, t * (1.0 + rel) + base, inf)
+        return (next_tmin, ended | ~hit | blocked), (rgb, t, refl, refl_t, alpha)
 
-    _, outs = jax.lax.scan(layer, base, None, length=layers)
+    init = (base, jnp.zeros(base.shape, dtype=bool))
+    _, outs = jax.lax.scan(layer, init, jnp.arange(layers))
     return tuple(jnp.moveaxis(x, 0, 1) for x in outs)
 
 
@@ -369,6 +459,40 @@ def sample_offsets(spp: int, dtype=None) -> Float[Array, "spp 2"]:
     return jnp.asarray(pts, dtype=dtype)
 
 
+# Samples whose surface lies within this relative inverse depth of the pixel centre's surface are
+# taken as the same surface when a hidden layer is box-filtered (a slanted surface changes far less
+# than 10 % in depth across one pixel except near its horizon, where defocus hardly varies).
+_SAME_SURFACE = 0.1
+
+
+def _box_filter_layers(rgb, t, alpha, colour, s_rgb, s_t, s_alpha):
+    """Antialiased peeled layers from per-sample peels (flat pixels).
+
+    Layer 0 is the supersampled colour itself (so it equals the plain render's rgb). Layer k >= 1
+    keeps the pixel centre's depth and alpha; its colour is the mean, over the samples, of the
+    sample's surface (at any of its layers) whose inverse depth is within `_SAME_SURFACE` relative
+    of the centre's layer-k surface (the background matches only the background). So near a
+    silhouette, a hidden layer's colour is the hidden surface's average over the pixel, including
+    the samples where it is directly visible. Where no sample matches, the centre's colour is kept.
+
+    Args: rgb (N, K, 3), t (N, K), alpha (N, K) of the centre ray; colour (N, 3); s_rgb (N, S, K,
+    3), s_t (N, S, K), s_alpha (N, S, K) of the samples. Returns rgb (N, K, 3).
+    """
+    u_c = safe_div(1.0, t)[:, None, None, 1:]  # (N, 1, 1, K-1); 0 for the background
+    u_s = safe_div(1.0, s_t)[:, :, :, None]  # (N, S, K, 1)
+    diff = jnp.abs(u_s - u_c)
+    ok = (diff <= _SAME_SURFACE * u_c) & (s_alpha[:, :, :, None] > 0)  # (N, S, K, K-1)
+    # per sample and centre layer, the sample's best-matching layer
+    best = jnp.argmin(jnp.where(ok, diff, jnp.inf), axis=2)  # (N, S, K-1)
+    found = jnp.any(ok, axis=2)  # (N, S, K-1)
+    picked = jnp.take_along_axis(s_rgb, best[..., None], axis=2)  # (N, S, K-1, 3)
+    count = jnp.sum(found, axis=1)[..., None]  # (N, K-1, 1)
+    total = jnp.sum(jnp.where(found[..., None], picked, 0.0), axis=1)
+    hidden = jnp.where(count > 0, total / jnp.maximum(count, 1), rgb[:, 1:])
+    hidden = jnp.where(alpha[:, 1:, None] > 0, hidden, rgb[:, 1:])
+    return jnp.concatenate([colour[:, None], hidden], axis=1)
+
+
 @eqx.filter_jit
 def _render(scene: Scene, camera: Camera, spp: int, layers: int | None) -> RGBD:
     global _render_traces
@@ -383,8 +507,11 @@ def _render(scene: Scene, camera: Camera, spp: int, layers: int | None) -> RGBD:
     def radiance(o, d):
         return _radiance(scene, o, d, _tmin(o, d))
 
+    def peel(o, d):
+        return _peel(scene, o, d, n_layers)
+
     if spp == 1 or layers is not None:
-        rgb, t, refl, refl_t = _chunked(lambda o, d: _peel(scene, o, d, n_layers), chunk, o, d)
+        rgb, t, refl, refl_t, alpha = _chunked(peel, chunk, o, d)
         colour, reflection = rgb[:, 0], refl[:, 0]
     if spp > 1:
         # Colour is averaged over the strata; depth (and the reflection's depth) stays the pixel
@@ -395,22 +522,27 @@ def _render(scene: Scene, camera: Camera, spp: int, layers: int | None) -> RGBD:
             ds = jnp.concatenate([d[:, None, :], ds], axis=1)
         n_rays = ds.shape[1]
         os = jnp.broadcast_to(camera.eye.astype(dtype), (h * w * n_rays, 3))
-        s_rgb, s_t, s_refl, s_refl_t = _chunked(radiance, chunk, os, ds.reshape(-1, 3))
-        s_rgb = s_rgb.reshape(h * w, n_rays, 3)
-        s_refl = s_refl.reshape(h * w, n_rays, 3)
+        fn = radiance if layers is None else peel
+        s_rgb, s_t, s_refl, s_refl_t, *s_alpha = _chunked(fn, chunk, os, ds.reshape(-1, 3))
+        s_rgb = s_rgb.reshape(h * w, n_rays, n_layers, 3)
+        s_refl = s_refl.reshape(h * w, n_rays, n_layers, 3)
         if layers is None:
             t = s_t.reshape(h * w, n_rays)[:, :1]
             refl_t = s_refl_t.reshape(h * w, n_rays)[:, :1]
             s_rgb, s_refl = s_rgb[:, 1:], s_refl[:, 1:]
-        colour = s_rgb.mean(axis=1)
-        reflection = s_refl.mean(axis=1)
+        colour = s_rgb[:, :, 0].mean(axis=1)
+        reflection = s_refl[:, :, 0].mean(axis=1)
+        if layers is not None:
+            s_t = s_t.reshape(h * w, n_rays, n_layers)
+            s_alpha = s_alpha[0].reshape(h * w, n_rays, n_layers)
+            rgb = _box_filter_layers(rgb, t, alpha, colour, s_rgb, s_t, s_alpha)
     mirrors = scene.max_bounces > 0
     peeled = None
     if layers is not None:
         peeled = Layers(
             rgb=jnp.moveaxis(rgb, 1, 0).reshape(layers, h, w, 3),
             depth=t.T.reshape(layers, h, w),
-            alpha=jnp.isfinite(t.T).astype(dtype).reshape(layers, h, w),
+            alpha=alpha.T.reshape(layers, h, w),
         )
     return RGBD(
         rgb=colour.reshape(h, w, 3),
@@ -430,21 +562,31 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
             the render is sharp; changing them does not recompile).
         spp: colour samples per pixel (static). A square n^2 uses an n x n stratified grid, other
             values a low-discrepancy pattern (see `sample_offsets`); deterministic, no key.
-        layers: if given (static, >= 1), also peel the first `layers` surfaces along each
-            pixel-centre ray into `RGBD.layers`.
+        layers: if given (static, >= 1), also peel the first `layers` things seen along each
+            pixel's ray into `RGBD.layers` (see below).
 
     Returns:
         `RGBD`: rgb (H, W, 3) linear radiance (the scene's float dtype); depth (H, W) z-depth at
         the pixel centre (ray parameter of a direction with unit forward component), +inf on a miss;
         reflection / reflection_depth when `scene.max_bounces > 0` (the mirror part of rgb, averaged
         like rgb; and the virtual z-depth of what the mirror shows, `t1 + L2 / |d1|`, at the pixel
-        centre); layers when `layers` is given (layer 0 equals rgb / depth at spp = 1; alpha is 1
-        where a surface was hit, else 0; rgb is the background where there is no surface).
+        centre); layers when `layers` is given.
 
-    Depth peeling counts every surface crossing along the pixel-centre ray, so a sphere or box
-    gives two layers (its front and its back wall) and a quad or plane one. A peeled layer is shaded
-    with the whole scene: surfaces in front of it are removed only from the view ray, and still cast
-    their shadows and appear in mirrors, as the lens-sampling reference would see them.
+    Peeled layers are what a blurred foreground can uncover (DESIGN.md section 3). Layer 0 is the
+    render itself: `layers.rgb[0]` is `rgb` (at any spp) and `layers.depth[0]` is `depth`. Layer
+    k >= 1 is the next surface the pixel-centre ray *enters* from the camera side: the back wall of
+    a sphere, a box or a closed triangle mesh (triangles face where their winding normal
+    `(v1 - v0) x (v2 - v0)` points, counter-clockwise as in OBJ files) is skipped; quads are
+    two-sided cards and count from both sides. Where the ray escapes, the layer is the background
+    (scene.background colour, depth +inf, alpha 1: it is seen), and nothing follows it. An infinite
+    plane is opaque, so nothing follows it either, nor a layer-0 hit on the inside of a closed
+    object (the eye is inside). After the end, layers have alpha 0, depth +inf and the background
+    colour. Alpha is otherwise 1: a layer covers its whole pixel.
+    With spp > 1, hidden layers keep the pixel centre's depth and alpha, and their colour is
+    box-filtered like rgb: the average over the pixel's samples of the same surface, wherever in
+    the sample's own peel it appears (matched by depth; see `_box_filter_layers`). A peeled layer
+    is shaded with the whole scene: surfaces in front of it are removed only from the view ray, and
+    still cast their shadows and appear in mirrors, as the lens-sampling reference sees them.
 
     Raises:
         ValueError: spp or layers not a positive integer.

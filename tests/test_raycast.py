@@ -295,6 +295,8 @@ def test_two_bounces_between_parallel_mirrors():
 
 # ------------------------------------------------------------------------------------- layers
 def test_layers_peel_quad_sphere_and_plane():
+    """A card, a sphere and an opaque plane: layer 1 behind the sphere is the plane (its back wall
+    is skipped), and nothing follows the plane."""
     scene = Scene(
         materials=materials(
             3, emission=[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], mirror=[0.0, 0.0, 0.0]
@@ -313,7 +315,7 @@ def test_layers_peel_quad_sphere_and_plane():
     # Layer 0 is exactly the single-layer render.
     np.testing.assert_array_equal(lay.rgb[0], out.rgb)
     np.testing.assert_array_equal(lay.depth[0], out.depth)
-    # Closed-form hits along every pixel-centre ray, sorted: quad, sphere front and back, plane.
+    # Closed-form hits along every pixel-centre ray: quad, sphere *front*, plane; then nothing.
     d = np.asarray(cam.pixel_directions()).reshape(-1, 3)
     x, y = d[:, 0] * 3.0, d[:, 1] * 3.0
     quad = np.where((x >= 0) & (x <= 1) & (np.abs(y) <= 0.6), 3.0, np.inf)
@@ -322,27 +324,142 @@ def test_layers_peel_quad_sphere_and_plane():
     disc = b * b - 4 * a * cc
     sq = np.sqrt(np.maximum(disc, 0))
     s0 = np.where(disc > 0, (-b - sq) / (2 * a), np.inf)
-    s1 = np.where(disc > 0, (-b + sq) / (2 * a), np.inf)
-    hits = np.sort(np.stack([quad, s0, s1, np.full_like(s0, 9.0)], axis=1), axis=1)
+    hits = np.sort(np.stack([quad, s0, np.full_like(s0, 9.0), np.full_like(s0, np.inf)], 1), 1)
     # Skip rays that graze the sphere or touch the quad edge (rounding decides those).
     clean = (np.abs(disc) > 1e-3) & (np.abs(x) > 1e-3) & (np.abs(x - 1) > 1e-3) & (
         np.abs(np.abs(y) - 0.6) > 1e-3
     )
     got = np.asarray(lay.depth).reshape(4, -1).T
     np.testing.assert_allclose(got[clean], hits[clean], rtol=1e-10)
-    np.testing.assert_array_equal(np.asarray(lay.alpha).reshape(4, -1).T, np.isfinite(got) * 1.0)
-    # Colours: behind the quad, layer 1 is what the render shows with the quad removed.
-    behind = clean & (quad == 3.0) & np.isinf(s0)
-    assert behind.sum() > 5
-    rgb1 = np.asarray(lay.rgb[1]).reshape(-1, 3)
-    np.testing.assert_allclose(rgb1[behind], [[0.0, 0.0, 1.0]] * behind.sum())
-    # Fewer surfaces than layers: background colour, alpha 0, depth inf.
-    rgb3 = np.asarray(lay.rgb[3]).reshape(-1, 3)
-    none = clean & np.isinf(hits[:, 3])
-    np.testing.assert_allclose(rgb3[none], 0.25)
-    assert np.all(np.asarray(lay.alpha[3]).reshape(-1)[none] == 0.0)
-    # The quad-in-front-of-plane case: layer 1 depth is the plane's depth behind the quad.
-    np.testing.assert_allclose(got[behind, 1], 9.0, rtol=1e-13)
+    # Every ray ends on the plane: alpha 1 up to it, 0 after (no background behind a plane).
+    np.testing.assert_array_equal(np.asarray(lay.alpha).reshape(4, -1).T[clean],
+                                  np.isfinite(hits[clean]) * 1.0)
+    card = clean & (quad == 3.0)
+    sphere = clean & np.isfinite(s0)
+    assert card.sum() > 20 and sphere.sum() > 20
+    # Behind the sphere's front: the plane (blue), not the sphere's back wall (green).
+    rgb = np.asarray(lay.rgb).reshape(4, -1, 3)
+    np.testing.assert_allclose(rgb[0][sphere], rows([0.0, 1.0, 0.0], sphere))
+    np.testing.assert_allclose(rgb[1][sphere], rows([0.0, 0.0, 1.0], sphere))
+    np.testing.assert_allclose(got[sphere, 1], 9.0, rtol=1e-13)
+    # Behind the card: the plane too.
+    np.testing.assert_allclose(rgb[1][card], rows([0.0, 0.0, 1.0], card))
+    np.testing.assert_allclose(got[card, 1], 9.0, rtol=1e-13)
+    # After the end: background colour, alpha 0, depth inf.
+    np.testing.assert_allclose(rgb[3][clean], 0.25)
+
+
+def test_layers_escape_to_the_background_then_end():
+    """A ray that escapes sees the background: a layer with depth inf and alpha 1, then nothing.
+    Boxes skip their back wall; a two-sided card counts from behind."""
+    scene = dofjax.scene_from_dict({
+        "materials": {"a": {"ambient": 0, "diffuse": 0, "emission": [1, 0, 0]},
+                      "b": {"ambient": 0, "diffuse": 0, "emission": [0, 1, 0]}},
+        "objects": [
+            {"type": "box", "lo": [-2.0, -0.5, 3.0], "hi": [0.0, 0.5, 4.0], "material": "a"},
+            # a card facing away from the camera, behind the box's left part
+            {"type": "quad", "corner": [-3.0, -0.5, 6.0], "edge_u": [0, 1.0, 0],
+             "edge_v": [2.0, 0, 0], "material": "b"},
+        ],
+        "background": [0.25, 0.5, 0.75],
+    })
+    cam = Camera(32, 16, fov=60.0, focus_distance=5.0, aperture_radius=0.0)
+    lay = dofjax.render(scene, cam, layers=3).layers
+    d = np.asarray(cam.pixel_directions()).reshape(-1, 3)
+    in_box = (np.abs(d[:, 0] * 3.0 + 1.0) < 0.95) & (np.abs(d[:, 1] * 3.0) < 0.45)
+    on_card = (np.abs(d[:, 0] * 6.0 + 2.0) < 0.95) & (np.abs(d[:, 1] * 6.0) < 0.45)
+    miss = (np.abs(d[:, 0] * 6.0 + 2.0) > 1.05) | (np.abs(d[:, 1] * 6.0) > 0.55)
+    miss &= (np.abs(d[:, 0] * 3.0 + 1.0) > 1.05) | (np.abs(d[:, 1] * 3.0) > 0.55)
+    box_card, box_only = in_box & on_card, in_box & ~on_card & (np.abs(d[:, 0] * 6 + 2) > 1.05)
+    assert box_card.sum() > 3 and box_only.sum() > 3 and miss.sum() > 100
+    depth = np.asarray(lay.depth).reshape(3, -1)
+    alpha = np.asarray(lay.alpha).reshape(3, -1)
+    rgb = np.asarray(lay.rgb).reshape(3, -1, 3)
+    np.testing.assert_allclose(depth[0][in_box], 3.0, rtol=1e-12)
+    # box, then the card seen from behind (not the box's back wall at z = 4), then the background
+    np.testing.assert_allclose(depth[1][box_card], 6.0, rtol=1e-12)
+    np.testing.assert_allclose(rgb[1][box_card], rows([0, 1, 0], box_card))
+    assert np.all(np.isinf(depth[2][box_card])) and np.all(alpha[2][box_card] == 1.0)
+    np.testing.assert_allclose(rgb[2][box_card], rows([0.25, 0.5, 0.75], box_card))
+    # box, then background, then nothing
+    assert np.all(np.isinf(depth[1][box_only])) and np.all(alpha[1][box_only] == 1.0)
+    np.testing.assert_allclose(rgb[1][box_only], rows([0.25, 0.5, 0.75], box_only))
+    assert np.all(alpha[2][box_only] == 0.0) and np.all(np.isinf(depth[2][box_only]))
+    # a miss: the background is layer 0 (seen, alpha 1) and nothing follows
+    assert np.all(alpha[0][miss] == 1.0) and np.all(alpha[1:, miss] == 0.0)
+
+
+def test_layers_inside_a_sphere_and_closed_mesh():
+    """From inside a closed sphere nothing else is seen; a closed counter-clockwise mesh (a
+    tetrahedron) gives its front face only, then what is behind it."""
+    inside = Scene(
+        materials=materials(2, emission=[[1.0, 0, 0], [0, 1.0, 0]], mirror=[0.0, 0.0]),
+        spheres=Spheres(center=[[0.0, 0.0, 0.0]], radius=[10.0], material=[0]),
+        quads=Quads(corner=[[-50.0, -50, 20]], edge_u=[[100.0, 0, 0]], edge_v=[[0, 100.0, 0]],
+                    material=[1]),
+    )
+    cam = Camera(8, 6, fov=40.0, focus_distance=5.0, aperture_radius=0.0)
+    lay = dofjax.render(inside, cam, layers=2).layers
+    np.testing.assert_allclose(lay.depth[0], 10.0 / np.linalg.norm(
+        np.asarray(cam.pixel_directions()), axis=-1), rtol=1e-10)
+    assert np.all(lay.alpha[1] == 0.0)  # the quad outside the sphere is not behind anything seen
+
+    # Regular tetrahedron around (0, 0, 5), faces wound counter-clockwise seen from outside.
+    v = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float) * 0.5 + [0, 0, 5]
+    faces = [(0, 1, 2), (0, 3, 1), (0, 2, 3), (1, 3, 2)]
+    tris = []
+    for f in faces:
+        a, b, c = v[list(f)]
+        if np.dot(np.cross(b - a, c - a), a - v.mean(0)) < 0:  # make the winding outward
+            b, c = c, b
+        tris.append({"type": "triangle", "v0": a.tolist(), "v1": b.tolist(), "v2": c.tolist(),
+                     "material": "m"})
+    scene = dofjax.scene_from_dict({
+        "materials": {"m": {"ambient": 0, "diffuse": 0, "emission": [1, 0, 0]},
+                      "w": {"ambient": 0, "diffuse": 0, "emission": [0, 0, 1]}},
+        "objects": tris + [{"type": "plane", "point": [0, 0, 8], "normal": [0, 0, -1],
+                            "material": "w"}],
+    })
+    cam = Camera(16, 16, fov=20.0, focus_distance=5.0, aperture_radius=0.0)
+    lay = dofjax.render(scene, cam, layers=3).layers
+    hit = np.asarray(lay.depth[0]) < 6.0
+    assert hit.sum() > 10
+    np.testing.assert_allclose(np.asarray(lay.depth[1])[hit], 8.0, rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(lay.rgb[1])[hit], rows([0, 0, 1.0], hit))
+    assert np.all(np.asarray(lay.alpha[2])[hit] == 0.0)  # the plane is opaque
+
+
+def test_supersampled_layers_are_box_filtered():
+    """spp > 1: layer 0 is the antialiased rgb; a hidden layer is the hidden surface averaged over
+    the pixel, i.e. the render of the scene without the occluder, even on silhouette pixels."""
+    backdrop = {"type": "quad", "corner": [-3.0, -3, 6], "edge_u": [6.0, 0, 0],
+                "edge_v": [0, 6.0, 0], "material": "checker"}
+    card = {"type": "quad", "corner": [-0.37, -0.41, 2], "edge_u": [0.83, 0, 0],
+            "edge_v": [0, 0.77, 0], "material": "plain"}
+    spec = {
+        "materials": {"checker": {"ambient": 1, "diffuse": 0, "texture": "checker:8"},
+                      "plain": {"ambient": 1, "diffuse": 0}},
+        "ambient_light": [1, 1, 1], "background": [0.9, 0.1, 0.1], "texture_size": 16,
+    }
+    with_card = dofjax.scene_from_dict({**spec, "objects": [backdrop, card]})
+    without = dofjax.scene_from_dict({**spec, "objects": [backdrop]})
+    cam = Camera(24, 24, fov=40.0, focus_distance=5.0, aperture_radius=0.0)
+    out = dofjax.render(with_card, cam, spp=9, layers=3)
+    plain = dofjax.render(with_card, cam, spp=9)
+    np.testing.assert_array_equal(out.layers.rgb[0], out.rgb)
+    np.testing.assert_array_equal(out.rgb, plain.rgb)
+    np.testing.assert_array_equal(out.layers.depth[0], out.depth)
+    behind = np.asarray(out.depth) < 3.0
+    silhouette = behind & (np.abs(np.asarray(out.rgb) - np.asarray(
+        dofjax.render(with_card, cam, spp=1).rgb)).max(-1) > 1e-3)
+    assert behind.sum() > 20 and silhouette.sum() > 4
+    ref = np.asarray(dofjax.render(without, cam, spp=9).rgb)
+    np.testing.assert_allclose(np.asarray(out.layers.rgb[1])[behind], ref[behind], atol=1e-12)
+    np.testing.assert_allclose(out.layers.depth[1][behind], 6.0, rtol=1e-12)
+    # and the backdrop's own layer 1 is the background, seen (alpha 1, depth inf)
+    assert np.all(np.asarray(out.layers.alpha[1])[~behind] == 1.0)
+    np.testing.assert_allclose(np.asarray(out.layers.rgb[1])[~behind], rows([0.9, 0.1, 0.1],
+                                                                             ~behind))
 
 
 # ------------------------------------------------------------------------------------- spp
@@ -502,7 +619,8 @@ def test_misses_are_background_without_nan_float32():
     assert np.all(np.isinf(out.depth)) and np.all(np.isinf(out.reflection_depth))
     np.testing.assert_allclose(out.rgb, np.broadcast_to([0.3, 0.2, 0.1], out.rgb.shape), rtol=1e-6)
     np.testing.assert_array_equal(out.reflection, 0.0)
-    assert np.all(out.layers.alpha == 0.0)
+    # the background is seen (layer 0, alpha 1) and nothing follows it
+    assert np.all(out.layers.alpha[0] == 1.0) and np.all(out.layers.alpha[1] == 0.0)
 
 
 def test_chunking_matches_unchunked():
