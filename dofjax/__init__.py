@@ -52,5 +52,9 @@ from ._scenefile import (
     scene_to_dict as scene_to_dict,
 )
 from ._textures import load_texture as load_texture
+from ._uncertainty import (
+    cramer_rao_bound as cramer_rao_bound,
+    fisher_information as fisher_information,
+)
 
 __version__ = "0.1.0"
