@@ -84,6 +84,16 @@ def scaled_camera(scene, cam, max_coc):
     return cam.replace(aperture_radius=float(cam.aperture_radius) * max_coc / c_max)
 
 
+def guarded(cam, guard):
+    """The camera extended by `guard` px on every side, same pose and pixel scale (so pixel (i, j)
+    of the frame is pixel (i + guard, j + guard) here)."""
+    width = cam.width + 2 * guard
+    half = math.atan(width / cam.width * math.tan(math.radians(float(cam.fov)) / 2.0))
+    return dofjax.Camera(width=width, height=cam.height + 2 * guard, fov=math.degrees(2 * half),
+                         focus_distance=cam.focus_distance, aperture_radius=cam.aperture_radius,
+                         eye=cam.eye, target=cam.target, up=cam.up)
+
+
 def reference_half(scene, cam, path, spp, seed, cache):
     """One half of the reference (spp samples, PRNG seed), cached on disk."""
     with open(path, "rb") as fh:
@@ -208,6 +218,20 @@ def run_scene(path, args):
                 f=lambda m=method: dofjax.defocus(sharp, cam, method=m))))
         variants.append(("seed (Yu 2004, before)", dict(
             f=lambda: seed_defocus(sharp.rgb, sharp.depth, cam))))
+        if args.guard and sharp_spp == max(args.sharp_spp):
+            # the sharp input rendered `guard` px beyond the frame, defocused, then cropped: the
+            # defocus then sees what lies just outside the frame, as the lens does
+            g = int(math.ceil(args.max_coc)) + 2
+            gcam = guarded(cam, g)
+            gsharp = dofjax.render(scene, gcam, spp=sharp_spp, layers=args.layers)
+            crop = (slice(g, g + cam.height), slice(g, g + cam.width))
+            for method in args.methods:
+                variants.append((f"{method}, single layer, guard band", dict(
+                    f=lambda m=method: np.asarray(dofjax.defocus(
+                        gsharp.rgb, gsharp.depth, gcam, reflection=gsharp.reflection,
+                        reflection_depth=gsharp.reflection_depth, method=m))[crop])))
+                variants.append((f"{method}, {args.layers} layers, guard band", dict(
+                    f=lambda m=method: np.asarray(dofjax.defocus(gsharp, gcam, method=m))[crop])))
         for label, v in variants:
             img = np.asarray(v["f"]())
             images[(label, sharp_spp)] = img
@@ -232,7 +256,8 @@ def error_map(result, args, file):
 
     ref = result["images"]["reference"]
     best = max(args.sharp_spp)
-    labels = [lab for lab in result["images"] if lab != "reference" and lab[1] == best]
+    labels = [lab for lab in result["images"] if lab != "reference" and lab[1] == best
+              and "seed" not in lab[0]]
     n = 1 + len(labels)
     cols = 3
     rows = -(-n // cols)
@@ -311,6 +336,9 @@ def main():
     ap.add_argument("--methods", default="pyramid,sliced")
     ap.add_argument("--scenes", default=None,
                     help="comma-separated names (quads, spheres, bench/plane, ...); default all")
+    ap.add_argument("--guard", action="store_true",
+                    help="also defocus a sharp input rendered max-coc + 2 px beyond the frame "
+                         "(then cropped), at the largest sharp spp")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--map-max", type=float, default=0.1, help="error-map colour scale top")
     ap.add_argument("--cache", default=os.path.join(HERE, "results", "cache"))

@@ -313,10 +313,12 @@ def _peel(scene: Scene, o, d, layers: int):
 
     Layer 0 is exactly `_radiance` from the ray origin. Layer k >= 1 is the next surface *entered*
     from the camera side (`_front_t`: the back wall of a sphere, box or closed mesh is skipped),
-    shaded with the whole scene. A ray that escapes shows the background: that layer has depth
-    +inf and alpha 1 (it is seen), and nothing follows it. An infinite plane is opaque: nothing
-    follows it either, and neither does a layer-0 hit on the inside of a closed object (the eye
-    is inside it). Layers after the end have alpha 0, depth +inf and the background colour.
+    shaded with the whole scene. Layer 0 has alpha 1 everywhere (the background where the ray
+    misses); a hidden layer has alpha 1 where a surface was entered. Where the ray escapes after
+    k >= 1 surfaces, the layer has the background colour, depth +inf and alpha 0, and nothing
+    follows. An infinite plane is opaque: nothing follows it, and nothing follows a layer-0 hit on
+    the inside of a closed object (the eye is inside it). Layers after the end have alpha 0, depth
+    +inf and the background colour.
 
     Returns (rgb, t, reflection, reflection_t, alpha) with a layer axis at position 1. The layers
     run as one `lax.scan` (shading compiled once).
@@ -345,7 +347,13 @@ def _peel(scene: Scene, o, d, layers: int):
         # object, i.e. a hit that is not the nearest entered surface.
         inside = (k == 0) & hit & (t_front > t * (1.0 + rel) + base)
         blocked = hit & ((_plane_t(scene, o, d, start) <= t) | inside)
-        alpha = jnp.where(ended, 0.0, 1.0).astype(d.dtype)
+        # Layer 0 is the visible image: it covers every pixel (the background where the ray
+        # misses). A hidden layer covers where the ray entered a surface; where it escapes, alpha
+        # is 0, not a background layer: measured on examples/quads.json (benchmarks/
+        # defocus_accuracy.py), a background behind a frame-filling backdrop, never visible
+        # through the lens, leaks into the defocus at the frame border (sliced) and through
+        # surfaces one depth slice in front of it (pyramid).
+        alpha = jnp.where((k == 0) | (hit & ~ended), 1.0, 0.0).astype(d.dtype)
         # Relative plus absolute epsilon: skips the surface just found (and rounding of its t)
         # without skipping a distinct surface farther than ~eps^(2/3) relative.
         next_tmin = jnp.where(hit, t * (1.0 + rel) + base, inf)
@@ -577,11 +585,13 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
     k >= 1 is the next surface the pixel-centre ray *enters* from the camera side: the back wall of
     a sphere, a box or a closed triangle mesh (triangles face where their winding normal
     `(v1 - v0) x (v2 - v0)` points, counter-clockwise as in OBJ files) is skipped; quads are
-    two-sided cards and count from both sides. Where the ray escapes, the layer is the background
-    (scene.background colour, depth +inf, alpha 1: it is seen), and nothing follows it. An infinite
-    plane is opaque, so nothing follows it either, nor a layer-0 hit on the inside of a closed
-    object (the eye is inside). After the end, layers have alpha 0, depth +inf and the background
-    colour. Alpha is otherwise 1: a layer covers its whole pixel.
+    two-sided cards and count from both sides. Layer 0 has alpha 1 everywhere (on a miss it is the
+    background, depth +inf); a hidden layer has alpha 1 where its ray entered a surface. Where the
+    ray escapes after k >= 1 surfaces, layer k and all after it have alpha 0, depth +inf and the
+    background colour (the background is not peeled as a hidden surface: where the defocus
+    uncovers nothing it renormalises). An infinite plane is opaque: nothing follows it (alpha 0
+    after it), nor a layer-0 hit on the inside of a closed object (the eye is inside). So alpha 0
+    on a hidden layer means "nothing more to see", never "the background is there".
     With spp > 1, hidden layers keep the pixel centre's depth and alpha, and their colour is
     box-filtered like rgb: the average over the pixel's samples of the same surface, wherever in
     the sample's own peel it appears (matched by depth; see `_box_filter_layers`). A peeled layer

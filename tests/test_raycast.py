@@ -350,8 +350,8 @@ def test_layers_peel_quad_sphere_and_plane():
 
 
 def test_layers_escape_to_the_background_then_end():
-    """A ray that escapes sees the background: a layer with depth inf and alpha 1, then nothing.
-    Boxes skip their back wall; a two-sided card counts from behind."""
+    """Layer 0 covers every pixel (the background on a miss); a hidden layer ends where the ray
+    escapes. Boxes skip their back wall; a two-sided card counts from behind."""
     scene = dofjax.scene_from_dict({
         "materials": {"a": {"ambient": 0, "diffuse": 0, "emission": [1, 0, 0]},
                       "b": {"ambient": 0, "diffuse": 0, "emission": [0, 1, 0]}},
@@ -379,14 +379,15 @@ def test_layers_escape_to_the_background_then_end():
     # box, then the card seen from behind (not the box's back wall at z = 4), then the background
     np.testing.assert_allclose(depth[1][box_card], 6.0, rtol=1e-12)
     np.testing.assert_allclose(rgb[1][box_card], rows([0, 1, 0], box_card))
-    assert np.all(np.isinf(depth[2][box_card])) and np.all(alpha[2][box_card] == 1.0)
+    assert np.all(alpha[:2, box_card] == 1.0)
+    assert np.all(np.isinf(depth[2][box_card])) and np.all(alpha[2][box_card] == 0.0)
     np.testing.assert_allclose(rgb[2][box_card], rows([0.25, 0.5, 0.75], box_card))
-    # box, then background, then nothing
-    assert np.all(np.isinf(depth[1][box_only])) and np.all(alpha[1][box_only] == 1.0)
+    # box, then the ray escapes: nothing more (background colour, depth inf, alpha 0)
+    assert np.all(np.isinf(depth[1:, box_only])) and np.all(alpha[1:, box_only] == 0.0)
     np.testing.assert_allclose(rgb[1][box_only], rows([0.25, 0.5, 0.75], box_only))
-    assert np.all(alpha[2][box_only] == 0.0) and np.all(np.isinf(depth[2][box_only]))
-    # a miss: the background is layer 0 (seen, alpha 1) and nothing follows
+    # a miss: layer 0 is the background, which covers the pixel (alpha 1); nothing follows
     assert np.all(alpha[0][miss] == 1.0) and np.all(alpha[1:, miss] == 0.0)
+    assert np.all(np.isinf(depth[:, miss]))
 
 
 def test_layers_inside_a_sphere_and_closed_mesh():
@@ -456,8 +457,8 @@ def test_supersampled_layers_are_box_filtered():
     ref = np.asarray(dofjax.render(without, cam, spp=9).rgb)
     np.testing.assert_allclose(np.asarray(out.layers.rgb[1])[behind], ref[behind], atol=1e-12)
     np.testing.assert_allclose(out.layers.depth[1][behind], 6.0, rtol=1e-12)
-    # and the backdrop's own layer 1 is the background, seen (alpha 1, depth inf)
-    assert np.all(np.asarray(out.layers.alpha[1])[~behind] == 1.0)
+    # behind the backdrop the ray escapes: nothing more to see
+    assert np.all(np.asarray(out.layers.alpha[1])[~behind] == 0.0)
     np.testing.assert_allclose(np.asarray(out.layers.rgb[1])[~behind], rows([0.9, 0.1, 0.1],
                                                                              ~behind))
 
