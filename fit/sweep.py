@@ -4,10 +4,12 @@
 
 Per sample: read the sharp RGB-D and the target EXRs, start from a random guess inside the bounds
 (u = 1/d uniform, A log-uniform; the bounds do not use the truth: d in (z_min / 2, 4 z_max), A up
-to a 32 px CoC), fit with `dofjax.fit_focus`. Writes DIR/sweep.jsonl (one line per sample),
+to a `--coc-reach` (32) px CoC, see `guess_and_bounds`), fit with `dofjax.fit_focus`. Writes
+DIR/sweep.jsonl (one line per sample),
 DIR/sweep.md (median / 98th-percentile relative errors by scene kind and noise level, with the
-median predicted standard error: the Cramer-Rao bound s^2 (J^T J)^-1 at the optimum) and plots
-DIR/sweep_noise.png (error vs noise sigma with the CRB) and DIR/sweep_aperture.png.
+median of the fit's standard error s^2 (J^T J)^-1 and of the Cramer-Rao bound at the truth,
+`dofjax.cramer_rao_bound`, for Gaussian noise) and plots DIR/sweep_noise.png (error vs noise
+sigma with the Cramer-Rao bound drawn in) and DIR/sweep_aperture.png (error vs true aperture).
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ import numpy as np
 
 import dofjax
 
+from ._table import format_table
+
 
 def _noise_level(noise: dict) -> str:
     model = noise.get("model", "none")
@@ -35,93 +39,189 @@ def _sigma(noise: dict) -> float:
     return float(noise.get("sigma", 0.0)) if noise.get("model") == "gaussian" else float("nan")
 
 
-def fit_record(rec: dict, root: str, rng: np.random.Generator, window, starts: int) -> dict:
+def guess_and_bounds(rng: np.random.Generator, depth: np.ndarray, fov: float,
+                     coc_reach: float = 32.0) -> tuple[float, float, dict]:
+    """A random initial guess and fit bounds that do not use the truth.
+
+    Bounds: d in (z_min / 2, 4 z_max); A up to the aperture whose largest |CoC| over the scene's
+    depths, for any focus inside the d bounds, is `coc_reach` px, and down to 1/1000 of that.
+    Guess: u = 1/d uniform and A log-uniform inside the bounds.
+
+    Args:
+        rng: numpy generator for the guess; depth: (H, W) z-depth, world units (+inf background);
+        fov: horizontal field of view, degrees; coc_reach: px.
+
+    Returns:
+        (focus_distance guess, aperture_radius guess, bounds dict for `dofjax.fit_focus`).
+    """
+    z = depth[np.isfinite(depth)]
+    w = depth.shape[1]
+    d_lo, d_hi = 0.5 * float(z.min()), 4.0 * float(z.max())
+    u_lo, u_hi = 1.0 / d_hi, 1.0 / d_lo
+    k = w / (2.0 * math.tan(math.radians(float(fov)) / 2.0))
+    du = max(abs(u_hi - 1.0 / z.max()), abs(u_lo - 1.0 / z.min()), abs(u_hi - 1.0 / z.min()),
+             abs(u_lo - 1.0 / z.max()))
+    a_hi = coc_reach / (k * du)
+    a_lo = a_hi / 1000.0
+    u0 = rng.uniform(u_lo, u_hi)
+    a0 = math.exp(rng.uniform(math.log(a_lo), math.log(a_hi)))
+    bounds = {"focus_distance": (d_lo, d_hi), "aperture_radius": (a_lo, a_hi)}
+    return 1.0 / u0, a0, bounds
+
+
+def true_camera(truth: dict, width: int, height: int) -> dofjax.Camera:
+    """The camera a data_gen record's target was made with."""
+    return dofjax.Camera(width=width, height=height, fov=truth["fov"],
+                         focus_distance=truth["focus_distance"],
+                         aperture_radius=truth["aperture_radius"],
+                         eye=truth.get("eye", (0, 0, 0)), target=truth.get("target", (0, 0, 1)),
+                         up=truth.get("up", (0, 1, 0)))
+
+
+def fit_record(rec: dict, root: str, rng: np.random.Generator, window, starts: int,
+               coc_reach: float = 32.0, crb: bool = True) -> dict:
+    """Fit one data_gen record from a random guess; errors, flags and (Gaussian noise) the CRB.
+
+    The Cramer-Rao bound is `dofjax.cramer_rao_bound` at the true camera for the record's noise
+    sigma, with the fit's model (same window): the smallest spread any unbiased fit can have.
+    It is NaN for noise models other than Gaussian and where the Fisher matrix is singular
+    (e.g. single_plane).
+    """
     truth = rec["truth"]
     rgb, depth, _ = dofjax.read_exr(os.path.join(root, rec["files"]["sharp"]))
     target, _, _ = dofjax.read_exr(os.path.join(root, rec["files"]["target"]))
     h, w = depth.shape
-    z = depth[np.isfinite(depth)]
-    d_lo, d_hi = 0.5 * float(z.min()), 4.0 * float(z.max())
-    u_lo, u_hi = 1.0 / d_hi, 1.0 / d_lo
-    k = w / (2.0 * math.tan(math.radians(float(truth["fov"])) / 2.0))
-    du = max(abs(u_hi - 1.0 / z.max()), abs(u_lo - 1.0 / z.min()), abs(u_hi - 1.0 / z.min()))
-    a_hi = 32.0 / (k * du)
-    a_lo = a_hi / 1000.0
-    u0 = rng.uniform(u_lo, u_hi)
-    a0 = math.exp(rng.uniform(math.log(a_lo), math.log(a_hi)))
-    camera = dofjax.Camera(width=w, height=h, fov=truth["fov"], focus_distance=1.0 / u0,
-                           aperture_radius=a0, eye=truth.get("eye", (0, 0, 0)),
-                           target=truth.get("target", (0, 0, 1)), up=truth.get("up", (0, 1, 0)))
+    d0, a0, bounds = guess_and_bounds(rng, depth, truth["fov"], coc_reach)
+    true = true_camera(truth, w, h)
+    camera = true.replace(focus_distance=d0, aperture_radius=a0)
     t = time.perf_counter()
     res = dofjax.fit_focus(target, rgb, depth, camera, starts=starts, window=window,
-                           bounds={"focus_distance": (d_lo, d_hi),
-                                   "aperture_radius": (a_lo, a_hi)})
+                           bounds=bounds)
     out = {"index": rec["index"], "kind": rec["kind"], "noise": _noise_level(rec["noise"]),
            "sigma": _sigma(rec["noise"]), "method": rec.get("method", "defocus"),
+           "identifiable_kind": bool(rec.get("identifiable", True)),
            "seconds": time.perf_counter() - t, "result": res.as_dict(),
-           "truth": {k: truth[k] for k in ("focus_distance", "aperture_radius")}}
-    for name in ("focus_distance", "aperture_radius"):
-        true = float(truth[name])
-        out[f"rel_err_{name}"] = float(getattr(res, name)) / true - 1.0
-        out[f"rel_se_{name}"] = float(getattr(res, name + "_se")) / true
+           "truth": {k: truth[k] for k in ("focus_distance", "aperture_radius")},
+           "truth_in_bounds": all(lo <= truth[k] <= hi for k, (lo, hi) in bounds.items())}
+    bound = np.full(2, np.nan)
+    if crb and math.isfinite(out["sigma"]):
+        try:
+            bound = dofjax.cramer_rao_bound(rgb, depth, true, out["sigma"], window=window,
+                                            bounds=bounds)
+        except ValueError as e:  # singular: not identifiable, the bound is infinite
+            out["crb_note"] = str(e)
+            bound = np.full(2, np.inf)
+    for i, name in enumerate(("focus_distance", "aperture_radius")):
+        value = float(truth[name])
+        out[f"rel_err_{name}"] = float(getattr(res, name)) / value - 1.0
+        out[f"rel_se_{name}"] = float(getattr(res, name + "_se")) / value
+        out[f"rel_crb_{name}"] = float(bound[i]) / value
     return out
 
 
+def _median(x) -> str:
+    x = np.asarray(x, dtype=float)
+    x = x[~np.isnan(x)]
+    return f"{np.median(x):.2e}" if x.size else ""
+
+
 def summarise(rows: list[dict]) -> str:
+    """Markdown table of relative errors by scene kind, noise level and target method.
+
+    Columns per parameter: median and 98th percentile of |rel err|, the median of the fit's own
+    standard error s^2 (J^T J)^-1 and of the Cramer-Rao bound at the truth (both relative; the
+    CRB only for Gaussian noise), and rms(err) / CRB (1 = as good as any unbiased fit can be).
+    """
     groups = defaultdict(list)
     for r in rows:
         groups[(r["kind"], r["noise"], r["method"])].append(r)
-    lines = ["| kind | noise | method | n | d: median rel err | d: p98 | d: median CRB | "
-             "A: median rel err | A: p98 | A: median CRB | identifiable | ambiguous |",
-             "|" + "---|" * 12]
+    header = ["kind", "noise", "method", "n"]
+    for p in ("d", "A"):
+        header += [f"{p}: median |err|", f"{p}: p98", f"{p}: median SE", f"{p}: median CRB",
+                   f"{p}: rms err / CRB"]
+    header += ["identifiable", "ambiguous", "truth in bounds"]
+    table = []
     for (kind, noise, method), rs in sorted(groups.items()):
         cells = [kind, noise, method, str(len(rs))]
         for name in ("focus_distance", "aperture_radius"):
             e = np.abs([r[f"rel_err_{name}"] for r in rs])
-            se = np.array([r[f"rel_se_{name}"] for r in rs])
+            crb = np.array([r.get(f"rel_crb_{name}", np.nan) for r in rs])
+            ok = np.isfinite(crb) & (crb > 0)
+            ratio = (f"{math.sqrt(np.mean(np.square(e[ok] / crb[ok]))):.2f}" if ok.any() else "")
             cells += [f"{np.median(e):.2e}", f"{np.percentile(e, 98):.2e}",
-                      f"{np.median(se):.2e}"]
+                      _median([r[f"rel_se_{name}"] for r in rs]), _median(crb[ok]), ratio]
         cells += [f"{np.mean([r['result']['identifiable'] for r in rs]):.0%}",
-                  f"{np.mean([r['result']['ambiguous'] for r in rs]):.0%}"]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+                  f"{np.mean([r['result']['ambiguous'] for r in rs]):.0%}",
+                  f"{np.mean([r.get('truth_in_bounds', True) for r in rs]):.0%}"]
+        table.append(cells)
+    return format_table(table, header=header)
 
 
 def plots(rows: list[dict], out: str) -> None:
+    """sweep_noise.png: |rel err| vs Gaussian sigma with each sample's CRB and the median CRB
+    line; sweep_aperture.png: |rel err| vs true aperture, by kind."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    kinds = sorted({r["kind"] for r in rows})
+    colours = {k: f"C{i}" for i, k in enumerate(kinds)}
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
     for ax, name in zip(axes, ("focus_distance", "aperture_radius")):
         rs = [r for r in rows if np.isfinite(r["sigma"])]
-        if rs:
-            s = np.array([r["sigma"] for r in rs])
-            ax.loglog(s, np.abs([r[f"rel_err_{name}"] for r in rs]) + 1e-12, ".", label="|error|")
-            ax.loglog(s, [r[f"rel_se_{name}"] for r in rs], "_", label="CRB (predicted SE)")
-        ax.set_xlabel("noise sigma")
+        for kind in kinds:
+            ks = [r for r in rs if r["kind"] == kind]
+            if ks:
+                ax.loglog([r["sigma"] for r in ks],
+                          np.abs([r[f"rel_err_{name}"] for r in ks]) + 1e-12, "o",
+                          color=colours[kind], label=f"|error|, {kind}", ms=4)
+                crb = np.array([r.get(f"rel_crb_{name}", np.nan) for r in ks])
+                ok = np.isfinite(crb)
+                if ok.any():
+                    ax.loglog(np.array([r["sigma"] for r in ks])[ok], crb[ok], "_",
+                              color=colours[kind], ms=12)
+        crb = np.array([r.get(f"rel_crb_{name}", np.nan) for r in rs])
+        sig = np.array([r["sigma"] for r in rs])
+        ok = np.isfinite(crb) & (crb > 0)
+        if ok.any():
+            # The CRB scales exactly with sigma for a given scene: draw the median over the
+            # samples of CRB / sigma as a line.
+            c = float(np.median(crb[ok] / sig[ok]))
+            s = np.geomspace(sig[ok].min(), sig[ok].max(), 20)
+            ax.loglog(s, c * s, "k-", label="Cramer-Rao bound (median over samples; _ = each)")
+        ax.set_xlabel("Gaussian noise sigma (linear image units)")
         ax.set_ylabel(f"relative error, {name}")
-        ax.legend()
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(os.path.join(out, "sweep_noise.png"), dpi=100)
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    plt.close(fig)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
     for ax, name in zip(axes, ("focus_distance", "aperture_radius")):
-        a = [r["truth"]["aperture_radius"] for r in rows]
-        ax.loglog(a, np.abs([r[f"rel_err_{name}"] for r in rows]) + 1e-12, ".")
-        ax.set_xlabel("true aperture radius")
+        for kind in kinds:
+            ks = [r for r in rows if r["kind"] == kind]
+            ax.loglog([r["truth"]["aperture_radius"] for r in ks],
+                      np.abs([r[f"rel_err_{name}"] for r in ks]) + 1e-12, "o",
+                      color=colours[kind], label=kind, ms=4)
+        ax.set_xlabel("true aperture radius (world units)")
         ax.set_ylabel(f"relative error, {name}")
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(os.path.join(out, "sweep_aperture.png"), dpi=100)
+    plt.close(fig)
 
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description="Fit a data_gen data set and summarise the errors.")
     p.add_argument("manifest")
     p.add_argument("--limit", type=int)
-    p.add_argument("--window", type=float, default=16.0, help="defocus window (px), static")
+    p.add_argument("--window", type=float, default=16.0,
+                   help="defocus window (px), static: >= the data set's max_coc_px")
+    p.add_argument("--coc-reach", type=float, default=32.0,
+                   help="aperture upper bound: the aperture giving this largest CoC (px)")
     p.add_argument("--starts", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-crb", action="store_true", help="skip the Cramer-Rao bound")
     p.add_argument("--out", help="output directory (default: next to the manifest)")
     a = p.parse_args(argv)
     root = os.path.dirname(os.path.abspath(a.manifest))
@@ -134,7 +234,7 @@ def main(argv=None) -> None:
     rows = []
     with open(os.path.join(out, "sweep.jsonl"), "w") as f:
         for i, rec in enumerate(records):
-            row = fit_record(rec, root, rng, a.window, a.starts)
+            row = fit_record(rec, root, rng, a.window, a.starts, a.coc_reach, not a.no_crb)
             rows.append(row)
             f.write(json.dumps(row) + "\n")
             f.flush()
@@ -143,7 +243,10 @@ def main(argv=None) -> None:
                   f"{row['rel_err_aperture_radius']:+.2e}  {row['seconds']:.1f} s", flush=True)
     table = summarise(rows)
     with open(os.path.join(out, "sweep.md"), "w") as f:
-        f.write(f"# fit.sweep over {a.manifest} ({len(rows)} samples)\n\n{table}\n")
+        f.write(f"# fit.sweep over {os.path.basename(a.manifest)} ({len(rows)} samples)\n\n"
+                f"Relative errors |fit / true - 1|; SE = the fit's standard error "
+                f"s^2 (J^T J)^-1; CRB = Cramer-Rao bound at the truth (Gaussian noise only).\n\n"
+                f"{table}\n")
     print(table)
     plots(rows, out)
     print(f"wrote {out}/sweep.jsonl, sweep.md, sweep_noise.png, sweep_aperture.png")

@@ -15,7 +15,7 @@ WINDOW = 6.0  # px; the largest |CoC| here is about 4 px
 
 
 def scene(seed=0, n=N, depths=(1.0, 2.0, 4.0)):
-    """Random texture over a 3x3 grid of blocks at three depths (a scene that identifies d and A)."""
+    """Random texture over a 3x3 grid of blocks at three depths (it identifies d and A)."""
     k1, k2 = jax.random.split(jax.random.key(seed))
     rgb = jax.random.uniform(k1, (n, n, 3))
     idx = jax.random.randint(k2, (3, 3), 0, len(depths))

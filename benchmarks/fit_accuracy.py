@@ -1,0 +1,490 @@
+"""Accuracy of `dofjax.fit_focus` (issue 5's numbers): noise-free suite, noise vs Cramer-Rao, lens
+reference targets.
+
+    python benchmarks/fit_accuracy.py --suite     [--cases 100] [--size 256]
+    python benchmarks/fit_accuracy.py --noise     [--noise-scenes 3] [--draws 50] [--sigma 0.01]
+    python benchmarks/fit_accuracy.py --reference [--ref-cases 10] [--spp 1024]
+    python benchmarks/fit_accuracy.py --suite --cases 5 --size 64       # quick check, ~1-2 min
+
+No part flag runs all three. Scenes and cameras are data_gen samples (`data_gen.build_sample` of
+data set `--seed`, sample index = case number; the default data_gen config with `--size`, the
+blur range scaled to the size: CoC 1 .. 16 * size / 256 px). The sharp RGB-D is the sample's
+render (`--sharp-spp` samples per pixel). Every fit starts from a random guess inside bounds that
+do not use the truth (`fit.sweep.guess_and_bounds`: d in (z_min / 2, 4 z_max), A up to a CoC of
+`--coc-reach` x the largest target CoC), with one static defocus `window` (the largest target
+CoC), so the fit compiles once per image size.
+
+Parts:
+a. --suite: targets made with the fit's own forward model (`dofjax.DefocusModel(window)`, the
+   sliced defocus) from the sharp RGB-D. Relative error of d and A: median, 98th percentile,
+   fraction <= 1e-3, and every case above 1e-3 listed. Kinds data_gen labels unidentifiable
+   (single_plane) are reported separately and not counted against the targets (median <= 1e-4,
+   98 % of cases <= 1e-3).
+b. --noise: `--noise-scenes` identifiable scenes, each with `--draws` Gaussian noise draws of
+   `--sigma` added to the model target. Per scene and parameter: std of the estimates / the
+   Cramer-Rao bound (`dofjax.cramer_rao_bound` at the truth, same model; target <= 1.3) and
+   |bias| / std (target < 0.3). Draws that end > 10 bounds away (a wrong basin) are counted as
+   outliers and left out of std and bias (and listed).
+c. --reference: targets from `dofjax.render_reference` at `--spp` (cached in
+   benchmarks/results/cache/ under a key of the scene, camera, size, spp and random key): the
+   model no longer matches exactly. Median relative error of d (target 1 %) and A (target 3 %).
+
+Writes benchmarks/results/fit_accuracy_{suite,noise,reference}.md, .json (per-case rows) and .png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import os
+import platform
+import sys
+import time
+
+import jax
+import numpy as np
+from tqdm import tqdm
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+RESULTS = os.path.join(HERE, "results")
+PARAMS = ("focus_distance", "aperture_radius")
+SHORT = {"focus_distance": "d", "aperture_radius": "A"}
+
+
+# ------------------------------------------------------------------------------------------------
+# Cases: data_gen scenes and cameras, the fit's model, random guesses.
+
+
+def data_config(size: int, sharp_spp: int, kinds: list[str] | None) -> dict:
+    """data_gen's default config at `size`, noise-free, blur range scaled to the size."""
+    import data_gen
+
+    max_coc = max(2.0, 16.0 * size / 256.0)
+    user = {
+        "noise": [{"model": "none", "weight": 1.0}],
+        "camera": {"min_coc_px": 1.0, "max_coc_px": max_coc},
+        # layers=1 (fewest the config allows): the peeled layers are not used, the fit's model
+        # sees only the visible surface.
+        "target": {"method": "defocus", "layers": 1, "sharp_spp": sharp_spp, "window": max_coc},
+    }
+    if kinds:
+        user["kinds"] = {k: 1.0 for k in kinds}
+    return data_gen.load_config(user, size=(size, size))
+
+
+def make_case(cfg: dict, seed: int, index: int) -> dict:
+    """Scene, true camera and sharp RGB-D of data_gen sample (seed, index)."""
+    import data_gen
+
+    s = data_gen.build_sample(cfg, seed, index)
+    return {"seed": seed, "index": index, "kind": s["kind"], "identifiable": s["identifiable"],
+            "scene": s["scene"], "camera": s["camera"],
+            "rgb": np.asarray(s["rgbd"].rgb), "depth": np.asarray(s["rgbd"].depth),
+            "truth": {k: float(s["truth"][k]) for k in PARAMS},
+            "max_coc_px": float(s["truth"]["max_coc_px"])}
+
+
+def guess_camera(case: dict, rng: np.random.Generator, coc_reach: float):
+    from fit.sweep import guess_and_bounds
+
+    cam = case["camera"]
+    d0, a0, bounds = guess_and_bounds(rng, case["depth"], float(cam.fov), coc_reach)
+    return cam.replace(focus_distance=d0, aperture_radius=a0), bounds
+
+
+def in_bounds(truth: dict, bounds: dict) -> bool:
+    return all(bounds[k][0] <= truth[k] <= bounds[k][1] for k in PARAMS)
+
+
+def fit_case(target, case, guess, bounds, args) -> dict:
+    import dofjax
+
+    t = time.perf_counter()
+    res = dofjax.fit_focus(target, case["rgb"], case["depth"], guess, bounds=bounds,
+                           window=args.window, starts=args.starts)
+    seconds = time.perf_counter() - t
+    row = {"seed": case["seed"], "index": case["index"], "kind": case["kind"],
+           "identifiable_kind": bool(case["identifiable"]), "truth": case["truth"],
+           "guess": {k: float(getattr(guess, k)) for k in PARAMS},
+           "truth_in_bounds": in_bounds(case["truth"], bounds), "seconds": seconds,
+           "converged": bool(res.converged), "identifiable": bool(res.identifiable),
+           "ambiguous": bool(res.ambiguous), "message": res.message}
+    for k in PARAMS:
+        row[k] = float(getattr(res, k))
+        row[f"{k}_se"] = float(getattr(res, k + "_se"))
+        row[f"rel_err_{k}"] = row[k] / case["truth"][k] - 1.0
+    return row
+
+
+def _fmt_pct(x: float) -> str:
+    return f"{100 * x:.0f} %"
+
+
+def _stats(rows, k):
+    e = np.abs([r[f"rel_err_{k}"] for r in rows])
+    return float(np.median(e)), float(np.percentile(e, 98)), float(np.mean(e <= 1e-3))
+
+
+def _command() -> str:
+    """The command line, without the cache directory (a path of this machine)."""
+    argv, out, skip = sys.argv[1:], [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--cache":
+            skip = True
+        elif not a.startswith("--cache="):
+            out.append(a)
+    return " ".join(out)
+
+
+def _header(args, what: str, sharp_spp: int | None = None) -> str:
+    return (f"# fit_focus accuracy: {what}\n\n"
+            f"{args.size}x{args.size}, data_gen seed {args.seed}, window {args.window:g} px, "
+            f"starts {args.starts}, coc_reach x{args.coc_reach:g}, sharp spp "
+            f"{sharp_spp or args.sharp_spp}, "
+            f"jax x64={jax.config.jax_enable_x64}, {platform.machine()} "
+            f"{os.cpu_count()} CPUs.\n\nCommand: `python benchmarks/fit_accuracy.py "
+            f"{_command()}`\n")
+
+
+def _save(name: str, text: str, rows) -> None:
+    with open(os.path.join(RESULTS, f"fit_accuracy_{name}.md"), "w") as f:
+        f.write(text)
+    with open(os.path.join(RESULTS, f"fit_accuracy_{name}.json"), "w") as f:
+        json.dump(rows, f, indent=1, default=float)
+    print(text)
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+# ------------------------------------------------------------------------------------------------
+# a. Noise-free suite.
+
+
+def suite(args) -> None:
+    import dofjax
+
+    cfg = data_config(args.size, args.sharp_spp, args.kinds)
+    model = dofjax.DefocusModel(window=args.window)
+    forward = jax.jit(model)
+    rows = []
+    bar = tqdm(range(args.first, args.first + args.cases), desc="suite", unit="case")
+    for index in bar:
+        case = make_case(cfg, args.seed, index)
+        target = np.asarray(forward(case["rgb"], case["depth"], case["camera"]))
+        rng = np.random.default_rng([args.seed, index, 1])
+        guess, bounds = guess_camera(case, rng, args.coc_reach * args.window)
+        row = fit_case(target, case, guess, bounds, args)
+        rows.append(row)
+        bar.set_postfix(kind=case["kind"], d=f"{row['rel_err_focus_distance']:+.1e}",
+                        A=f"{row['rel_err_aperture_radius']:+.1e}", s=f"{row['seconds']:.1f}")
+    ident = [r for r in rows if r["identifiable_kind"]]
+    unident = [r for r in rows if not r["identifiable_kind"]]
+    lines = [_header(args, f"noise-free suite, {len(rows)} cases"),
+             "Targets made with the fit's own forward model; random initial guess inside the "
+             "bounds. Relative error |fit / true - 1|.\n",
+             "| cases | n | d: median | d: p98 | d: <= 1e-3 | A: median | A: p98 | A: <= 1e-3 | "
+             "both <= 1e-3 | median fit time |", "|" + "---|" * 10]
+
+    def line(label, rs):
+        if not rs:
+            return f"| {label} | 0 |" + " |" * 8
+        cells = [label, str(len(rs))]
+        for k in PARAMS:
+            med, p98, frac = _stats(rs, k)
+            cells += [f"{med:.1e}", f"{p98:.1e}", _fmt_pct(frac)]
+        both = np.mean([max(abs(r["rel_err_focus_distance"]), abs(r["rel_err_aperture_radius"]))
+                        <= 1e-3 for r in rs])
+        cells += [_fmt_pct(both), f"{np.median([r['seconds'] for r in rs]):.1f} s"]
+        return "| " + " | ".join(cells) + " |"
+
+    lines.append(line("**identifiable kinds**", ident))
+    for kind in sorted({r["kind"] for r in ident}):
+        lines.append(line(kind, [r for r in ident if r["kind"] == kind]))
+    lines.append(line("unidentifiable (single_plane; not counted)", unident))
+    if ident:
+        med = max(_stats(ident, k)[0] for k in PARAMS)
+        both = np.mean([max(abs(r["rel_err_focus_distance"]), abs(r["rel_err_aperture_radius"]))
+                        <= 1e-3 for r in ident])
+        lines.append(f"\nTargets (identifiable kinds, {len(ident)} cases; the issue asks for >= "
+                     f"100 at 256x256): median <= 1e-4: **{'met' if med <= 1e-4 else 'missed'}** "
+                     f"(worst of d, A: {med:.1e}); <= 1e-3 on 98 % of cases: "
+                     f"**{'met' if both >= 0.98 else 'missed'}** ({_fmt_pct(both)} of cases have "
+                     "both errors <= 1e-3).")
+    out_of = [r for r in rows if not r["truth_in_bounds"]]
+    if out_of:
+        lines.append(f"\n{len(out_of)} case(s) had the truth outside the fit bounds: index "
+                     f"{', '.join(str(r['index']) for r in out_of)}.")
+    fails = [r for r in rows if max(abs(r["rel_err_focus_distance"]),
+                                    abs(r["rel_err_aperture_radius"])) > 1e-3]
+    lines += ["\n## Cases with a relative error > 1e-3\n",
+              "| seed | index | kind | true d | fit d | true A | fit A | rel err d | rel err A | "
+              "converged | identifiable | ambiguous | message |", "|" + "---|" * 13]
+    for r in fails:
+        t = r["truth"]
+        lines.append(
+            f"| {r['seed']} | {r['index']} | {r['kind']} | {t['focus_distance']:.4g} | "
+            f"{r['focus_distance']:.4g} | {t['aperture_radius']:.4g} | "
+            f"{r['aperture_radius']:.4g} | {r['rel_err_focus_distance']:+.1e} | "
+            f"{r['rel_err_aperture_radius']:+.1e} | {r['converged']} | {r['identifiable']} | "
+            f"{r['ambiguous']} | {r['message']} |")
+    if not fails:
+        lines.append("(none)")
+    _save("suite", "\n".join(lines) + "\n", rows)
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for k in PARAMS:
+        for label, rs, style in (("identifiable", ident, "-"), ("single_plane", unident, ":")):
+            if rs:
+                e = np.sort(np.maximum(np.abs([r[f"rel_err_{k}"] for r in rs]), 1e-12))
+                ax.semilogx(e, np.arange(1, len(e) + 1) / len(e), style,
+                            label=f"{SHORT[k]}, {label}")
+    ax.axvline(1e-4, color="grey", lw=0.5)
+    ax.axvline(1e-3, color="grey", lw=0.5)
+    ax.set_xlabel("relative error |fit / true - 1|")
+    ax.set_ylabel("fraction of cases")
+    ax.set_title(f"noise-free suite, {args.size}x{args.size}")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(os.path.join(RESULTS, "fit_accuracy_suite.png"), dpi=100)
+
+
+# ------------------------------------------------------------------------------------------------
+# b. Noise study against the Cramer-Rao bound.
+
+
+def identifiable_cases(cfg, seed, first, count):
+    """The first `count` identifiable data_gen samples from index `first` on."""
+    import data_gen
+
+    index = first
+    out = []
+    while len(out) < count:
+        kind = data_gen.plan_sample(cfg, seed, index)["kind"]
+        if kind != "single_plane":
+            out.append(make_case(cfg, seed, index))
+        index += 1
+    return out
+
+
+def noise_study(args) -> None:
+    import dofjax
+
+    cfg = data_config(args.size, args.sharp_spp, args.kinds)
+    model = dofjax.DefocusModel(window=args.window)
+    forward = jax.jit(model)
+    cases = identifiable_cases(cfg, args.seed, args.first, args.noise_scenes)
+    rows, summary = [], []
+    for case in cases:
+        clean = np.asarray(forward(case["rgb"], case["depth"], case["camera"]), np.float64)
+        crb = np.asarray(dofjax.cramer_rao_bound(case["rgb"], case["depth"], case["camera"],
+                                                 args.sigma, model=model))
+        est = []
+        for draw in tqdm(range(args.draws), desc=f"noise, sample {case['index']}", unit="fit"):
+            rng = np.random.default_rng([args.seed, case["index"], 2, draw])
+            target = (clean + args.sigma * rng.standard_normal(clean.shape)).astype(np.float32)
+            guess, bounds = guess_camera(case, rng, args.coc_reach * args.window)
+            row = fit_case(target, case, guess, bounds, args)
+            row["draw"] = draw
+            row["crb"] = {k: float(crb[i]) for i, k in enumerate(PARAMS)}
+            rows.append(row)
+            est.append([row[k] for k in PARAMS])
+        est = np.array(est)
+        true = np.array([case["truth"][k] for k in PARAMS])
+        outlier = np.any(np.abs(est - true) > 10 * crb, axis=1)
+        good = est[~outlier]
+        s = {"index": case["index"], "kind": case["kind"], "truth": case["truth"],
+             "max_coc_px": case["max_coc_px"], "draws": len(est), "outliers": int(outlier.sum()),
+             "outlier_draws": [int(i) for i in np.nonzero(outlier)[0]]}
+        for i, k in enumerate(PARAMS):
+            std = float(good[:, i].std(ddof=1)) if len(good) > 1 else float("nan")
+            bias = float(good[:, i].mean() - true[i]) if len(good) else float("nan")
+            s[k] = {"crb": float(crb[i]), "std": std, "ratio": std / float(crb[i]),
+                    "bias": bias, "bias_over_std": abs(bias) / std if std > 0 else float("nan"),
+                    "median_fit_se": float(np.median([r[f"{k}_se"] for r in rows
+                                                      if r["index"] == case["index"]]))}
+        summary.append(s)
+    n = args.draws
+    # The sample std of n Gaussian draws is within sqrt(chi2_{n-1, q} / (n - 1)) of the truth;
+    # scipy gives the 95 % band so a reader can tell chance from a real excess.
+    from scipy.stats import chi2
+
+    lo, hi = (math.sqrt(chi2.ppf(q, n - 1) / (n - 1)) for q in (0.025, 0.975))
+    lines = [_header(args, f"Gaussian noise sigma = {args.sigma:g}, {n} draws per scene"),
+             f"Spread of the estimates vs the Cramer-Rao bound (CRB, at the truth, same model). "
+             f"Targets: std / CRB <= 1.3, |bias| / std < 0.3. With {n} draws a std/CRB of an "
+             f"efficient estimator falls in [{lo:.2f}, {hi:.2f}] 95 % of the time, and |bias| / "
+             f"std exceeds {1.96 / math.sqrt(n):.2f} 5 % of the time.\n",
+             "| index | kind | max CoC px | param | true | CRB | std | std / CRB | bias / std | "
+             "median fit SE | outliers |", "|" + "---|" * 11]
+    for s in summary:
+        for k in PARAMS:
+            p = s[k]
+            lines.append(f"| {s['index']} | {s['kind']} | {s['max_coc_px']:.1f} | {SHORT[k]} | "
+                         f"{s['truth'][k]:.4g} | {p['crb']:.2e} | {p['std']:.2e} | "
+                         f"{p['ratio']:.2f} | {p['bias_over_std']:.2f} | "
+                         f"{p['median_fit_se']:.2e} | {s['outliers']} |")
+    ratios = [s[k]["ratio"] for s in summary for k in PARAMS]
+    biases = [s[k]["bias_over_std"] for s in summary for k in PARAMS]
+    lines.append(f"\nWorst std / CRB {max(ratios):.2f} (target <= 1.3: "
+                 f"**{'met' if max(ratios) <= 1.3 else 'missed'}**); worst |bias| / std "
+                 f"{max(biases):.2f} (target < 0.3: "
+                 f"**{'met' if max(biases) < 0.3 else 'missed'}**)."
+                 f" Outliers (> 10 CRB off, excluded): "
+                 f"{sum(s['outliers'] for s in summary)} of {n * len(summary)}.")
+    _save("noise", "\n".join(lines) + "\n", {"summary": summary, "fits": rows})
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    x = np.linspace(-4, 4, 200)
+    for ax, k in zip(axes, PARAMS):
+        for s in summary:
+            z = [(r[k] - s["truth"][k]) / s[k]["crb"] for r in rows if r["index"] == s["index"]]
+            ax.hist(np.clip(z, -6, 6), bins=np.linspace(-6, 6, 25), density=True,
+                    histtype="step", label=f"sample {s['index']} ({s['kind']})")
+        ax.plot(x, np.exp(-x * x / 2) / math.sqrt(2 * math.pi), "k--", label="N(0, 1): the CRB")
+        ax.set_xlabel(f"({SHORT[k]} fit - true) / CRB")
+        ax.legend(fontsize=7)
+    fig.suptitle(f"sigma = {args.sigma:g}, {n} draws, {args.size}x{args.size}")
+    fig.tight_layout()
+    fig.savefig(os.path.join(RESULTS, "fit_accuracy_noise.png"), dpi=100)
+
+
+# ------------------------------------------------------------------------------------------------
+# c. Lens-sampling reference targets.
+
+
+def reference_target(case: dict, spp: int, cache: str) -> tuple[np.ndarray, bool]:
+    """`render_reference` of the case's scene and true camera at `spp`, cached on disk."""
+    import dofjax
+
+    cam = case["camera"]
+    key_seed = int(np.random.SeedSequence([case["seed"], case["index"], 3]).generate_state(1)[0])
+    ident = json.dumps({"scene": case["scene"], "width": cam.width, "height": cam.height,
+                        "fov": float(cam.fov), "eye": np.asarray(cam.eye).tolist(),
+                        "target": np.asarray(cam.target).tolist(),
+                        "up": np.asarray(cam.up).tolist(), "truth": case["truth"], "spp": spp,
+                        "key": key_seed, "dtype": str(np.dtype(jax.numpy.result_type(float)))},
+                       sort_keys=True)
+    digest = hashlib.sha256(ident.encode()).hexdigest()[:16]
+    path = os.path.join(cache, f"fitref_{digest}.npy")
+    if os.path.exists(path):
+        return np.load(path), True
+    scene = dofjax.scene_from_dict(case["scene"])
+    img = np.asarray(dofjax.render_reference(scene, cam, spp=spp, key=jax.random.key(key_seed)))
+    os.makedirs(cache, exist_ok=True)
+    tmp = path + f".tmp{os.getpid()}.npy"
+    np.save(tmp, img)
+    os.replace(tmp, path)
+    return img, False
+
+
+def reference(args) -> None:
+    cfg = data_config(args.size, args.ref_sharp_spp, args.kinds)
+    cases = identifiable_cases(cfg, args.seed, args.first, args.ref_cases)
+    rows = []
+    for case in tqdm(cases, desc="reference", unit="case"):
+        t = time.perf_counter()
+        target, cached = reference_target(case, args.spp, args.cache)
+        render_s = time.perf_counter() - t
+        rng = np.random.default_rng([args.seed, case["index"], 1])
+        guess, bounds = guess_camera(case, rng, args.coc_reach * args.window)
+        row = fit_case(target, case, guess, bounds, args)
+        row.update(reference_seconds=None if cached else render_s, max_coc_px=case["max_coc_px"])
+        rows.append(row)
+    lines = [_header(args, f"lens-sampling reference targets, {args.spp} spp, {len(rows)} scenes",
+                     args.ref_sharp_spp),
+             "Targets from `dofjax.render_reference` (thin-lens ray tracing) of the data_gen scene "
+             "at the true camera; the fit's model is the sliced defocus of the sharp RGB-D "
+             "(visible surface only): a model mismatch, as for any real photograph.\n",
+             "| index | kind | max CoC px | true d | fit d | rel err d | true A | fit A | "
+             "rel err A | identifiable | ambiguous |", "|" + "---|" * 11]
+    for r in rows:
+        t = r["truth"]
+        lines.append(f"| {r['index']} | {r['kind']} | {r['max_coc_px']:.1f} | "
+                     f"{t['focus_distance']:.4g} | {r['focus_distance']:.4g} | "
+                     f"{r['rel_err_focus_distance']:+.2%} | {t['aperture_radius']:.4g} | "
+                     f"{r['aperture_radius']:.4g} | {r['rel_err_aperture_radius']:+.2%} | "
+                     f"{r['identifiable']} | {r['ambiguous']} |")
+    med = {k: float(np.median(np.abs([r[f"rel_err_{k}"] for r in rows]))) for k in PARAMS}
+    by_kind = {}
+    for r in rows:
+        by_kind.setdefault(r["kind"], []).append(r)
+    lines.append(f"\nMedian |relative error|: d {med['focus_distance']:.2%} (target 1 %: "
+                 f"**{'met' if med['focus_distance'] <= 0.01 else 'missed'}**), A "
+                 f"{med['aperture_radius']:.2%} (target 3 %: "
+                 f"**{'met' if med['aperture_radius'] <= 0.03 else 'missed'}**).\n")
+    lines += ["| kind | n | d: median | A: median |", "|---|---|---|---|"]
+    for kind, rs in sorted(by_kind.items()):
+        lines.append(f"| {kind} | {len(rs)} | "
+                     f"{np.median(np.abs([r['rel_err_focus_distance'] for r in rs])):.2%} | "
+                     f"{np.median(np.abs([r['rel_err_aperture_radius'] for r in rs])):.2%} |")
+    _save("reference", "\n".join(lines) + "\n", rows)
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(5, 5))
+    ax.scatter([100 * r["rel_err_focus_distance"] for r in rows],
+               [100 * r["rel_err_aperture_radius"] for r in rows])
+    for r in rows:
+        ax.annotate(r["kind"], (100 * r["rel_err_focus_distance"],
+                                100 * r["rel_err_aperture_radius"]), fontsize=7)
+    ax.axvspan(-1, 1, color="green", alpha=0.1)
+    ax.axhspan(-3, 3, color="green", alpha=0.1)
+    ax.set_xlabel("relative error of d, %")
+    ax.set_ylabel("relative error of A, %")
+    ax.set_title(f"reference targets, {args.spp} spp, {args.size}x{args.size}")
+    fig.tight_layout()
+    fig.savefig(os.path.join(RESULTS, "fit_accuracy_reference.png"), dpi=100)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--suite", action="store_true", help="a. noise-free suite")
+    p.add_argument("--noise", action="store_true", help="b. noise study vs Cramer-Rao")
+    p.add_argument("--reference", action="store_true", help="c. lens-reference targets")
+    p.add_argument("--size", type=int, default=256, help="image side, px")
+    p.add_argument("--seed", type=int, default=0, help="data_gen data set seed")
+    p.add_argument("--first", type=int, default=0, help="first data_gen sample index")
+    p.add_argument("--cases", type=int, default=100, help="suite: number of cases")
+    p.add_argument("--kinds", type=lambda s: s.split(","), default=None,
+                   help="comma-separated data_gen kinds (default: data_gen's mix)")
+    p.add_argument("--window", type=float, default=None,
+                   help="static defocus window, px (default: the largest target CoC, "
+                   "max(2, 16 * size / 256))")
+    p.add_argument("--coc-reach", type=float, default=8.0,
+                   help="aperture upper bound: a CoC of this many windows")
+    p.add_argument("--starts", type=int, default=8, help="fit_focus multi-starts")
+    p.add_argument("--sharp-spp", type=int, default=1, help="samples per pixel of the sharp render")
+    p.add_argument("--noise-scenes", type=int, default=3)
+    p.add_argument("--draws", type=int, default=50)
+    p.add_argument("--sigma", type=float, default=0.01)
+    p.add_argument("--ref-cases", type=int, default=10)
+    p.add_argument("--spp", type=int, default=1024, help="reference samples per pixel")
+    p.add_argument("--ref-sharp-spp", type=int, default=16,
+                   help="reference part: samples per pixel of the sharp render (antialiased like "
+                   "the reference, whose pixels average jittered positions)")
+    p.add_argument("--cache", default=os.path.join(RESULTS, "cache"))
+    p.add_argument("--x64", action="store_true", help="run in float64")
+    args = p.parse_args(argv)
+    if args.x64:
+        jax.config.update("jax_enable_x64", True)
+    if args.window is None:
+        args.window = max(2.0, 16.0 * args.size / 256.0)
+    os.makedirs(RESULTS, exist_ok=True)
+    parts = [n for n in ("suite", "noise", "reference") if getattr(args, n)] or \
+        ["suite", "noise", "reference"]
+    for name in parts:
+        {"suite": suite, "noise": noise_study, "reference": reference}[name](args)
+
+
+if __name__ == "__main__":
+    main()
