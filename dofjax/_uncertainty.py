@@ -33,18 +33,16 @@ from ._fit import PARAMS, DefocusModel, _reach, _validate
 
 
 def _default_model(rgb, depth, camera, mask, bounds, window, max_window, defocus_options):
-    """The model `fit_focus` would build for these arguments (same validation, same window)."""
-    # fit_focus validates the target too; the sharp rgb stands in for it (it is checked for
-    # non-finite values by the caller first, so every message names the right argument).
-    _, _, depth_a, weight, _, d_bounds, a_bounds = _validate(
-        rgb, rgb, depth, camera, mask, bounds, (), "lm", "l2", 1, False)
-    if window is not None:
-        win = window
-    else:
+    """The model `fit_focus` would build for these arguments (same window, same options)."""
+    if window is None:
+        # fit_focus's own validation and default bounds (the sharp rgb stands in for the target;
+        # the caller has checked it already, so no message names the wrong argument).
+        _, _, depth_a, weight, _, d_bounds, a_bounds = _validate(
+            rgb, rgb, depth, camera, mask, bounds, (), "lm", "l2", 1, False)
         u_bounds = (1.0 / d_bounds[1], 1.0 / d_bounds[0])
-        win = min(_reach(depth_a, weight, float(camera.pixel_scale), u_bounds, a_bounds[1]),
-                  max_window)
-    return DefocusModel(window=float(max(win, 1.0)), **(defocus_options or {}))
+        window = min(_reach(depth_a, weight, float(camera.pixel_scale), u_bounds, a_bounds[1]),
+                     max_window)
+    return DefocusModel(window=float(max(window, 1.0)), **(defocus_options or {}))
 
 
 def _check_inputs(rgb, depth, camera, sigma, mask):
@@ -72,6 +70,10 @@ def _check_inputs(rgb, depth, camera, sigma, mask):
     sig = np.broadcast_to(sig[..., None] if sig.shape == hw else sig, hw + (3,))
     if not np.all(np.isfinite(sig)) or not np.all(sig > 0):
         raise ValueError(f"sigma: must be finite and > 0 (image units), got min {sig.min()!r}")
+    if np.isnan(depth_a).any() or (depth_a <= 0).any():
+        idx = tuple(int(i) for i in np.argwhere(np.isnan(depth_a) | (depth_a <= 0))[0])
+        raise ValueError(f"depth: must be > 0 (or +inf for background), got {depth_a[idx]!r} "
+                         f"at index {idx}")
     if mask is None:
         weight = np.ones(hw)
     else:
@@ -126,7 +128,8 @@ def fisher_information(
         mask: (H, W) bool, or weights >= 0 read as inverse-variance multipliers (pixel noise
             sigma / sqrt(w)); pixels with 0 carry no information. As the `mask` of `fit_focus`.
         bounds, max_window, defocus_options: as for `fit_focus`; used only to pick the default
-            model's window and shape.
+            model's window (bounds and max_window, only when `window` is None: then `camera`
+            must lie inside the bounds, as `fit_focus`'s guess must) and shape.
 
     Returns:
         (2, 2) Fisher information in (focus_distance, aperture_radius) order, units 1 / world

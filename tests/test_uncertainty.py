@@ -145,6 +145,8 @@ def test_bad_input():
         fisher_information(rgb.at[0, 0, 0].set(jnp.nan), depth, TRUE, 0.01, model=blend_model)
     with pytest.raises(ValueError, match="camera: width x height"):
         fisher_information(rgb[:20, :20], depth[:20, :20], TRUE, 0.01, model=blend_model)
+    with pytest.raises(ValueError, match="depth: must be > 0"):
+        fisher_information(rgb, depth.at[3, 4].set(0.0), TRUE, 0.01, model=blend_model)
     with pytest.raises(ValueError, match="mask: expected shape"):
         fisher_information(rgb, depth, TRUE, 0.01, model=blend_model, mask=np.ones((3, 3)))
     with pytest.raises(ValueError, match="fixed: names"):
