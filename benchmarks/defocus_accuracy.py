@@ -23,9 +23,11 @@ algorithm (Yu 2004, the "before" row). Metrics on colours clipped to [0, 1]: RMS
 
 - focus:    |c| < 1 px at the pixel centre, away from depth edges and the frame border;
 - interior: |c| >= 1 px, away from depth edges and the frame border;
-- edges:    within (larger |c| of the two sides + 2) px of a depth discontinuity (a jump of more
-            than 1 px of CoC between 4-neighbours);
-- border:   within (|c| + 1) px of the frame (the defocus sees nothing beyond it), not an edge.
+- edges:    within 3 px of a depth discontinuity (a jump of more than 1 px of CoC between
+            4-neighbours): occlusion and partial coverage;
+- halo:     farther than 3 px from a discontinuity but within the reach of its blur (the larger
+            |c| of the two sides + 2 px): what a blurred edge spreads over or uncovers;
+- border:   within (|c| + 1) px of the frame (the defocus sees nothing beyond it), not edge/halo.
 
 "share" is the region's part of the total squared error. Results: a Markdown table in
 benchmarks/results/defocus_accuracy.md, raw numbers in defocus_accuracy.json, and an error map PNG
@@ -52,7 +54,7 @@ from dofjax._seed import seed_defocus
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
-REGIONS = ("focus", "interior", "edges", "border")
+REGIONS = ("focus", "interior", "edges", "halo", "border")
 
 
 def scene_paths():
@@ -144,7 +146,7 @@ def rmse(a, b, mask=None):
     return float(np.sqrt(np.mean(d2)))
 
 
-def regions(depth, cam, max_coc):
+def regions(depth, cam, max_coc, edge_px=3.0):
     """Boolean masks (H, W) of the regions in the module docstring (mutually exclusive)."""
     c = np.asarray(dofjax.coc_radius(np.asarray(depth, np.float64), cam), np.float64)
     a = np.abs(c)
@@ -163,15 +165,16 @@ def regions(depth, cam, max_coc):
             reach[idx] = np.maximum(reach[idx], np.where(jump, big, 0.0))
     if edge.any():
         dist, (iy, ix) = ndi.distance_transform_edt(~edge, return_indices=True)
-        near_edge = dist <= reach[iy, ix] + 2.0
+        at_edge = dist <= edge_px
+        near_edge = dist <= np.maximum(reach[iy, ix] + 2.0, edge_px)
     else:
-        near_edge = np.zeros((h, w), bool)
+        at_edge = near_edge = np.zeros((h, w), bool)
     yy, xx = np.mgrid[0:h, 0:w]
     to_frame = np.minimum(np.minimum(yy, h - 1 - yy), np.minimum(xx, w - 1 - xx))
     border = (to_frame <= np.minimum(a, max_coc) + 1.0) & ~near_edge
     inner = ~near_edge & ~border
-    return dict(focus=inner & (a < 1.0), interior=inner & (a >= 1.0), edges=near_edge,
-                border=border)
+    return dict(focus=inner & (a < 1.0), interior=inner & (a >= 1.0), edges=at_edge,
+                halo=near_edge & ~at_edge, border=border)
 
 
 def metrics(img, ref, noise, masks):
@@ -241,7 +244,7 @@ def run_scene(path, args):
             print(f"    sharp spp {sharp_spp:3d} | {label:28s} | RMSE {row['rmse']:.4f} "
                   f"(denoised {row['rmse_denoised']:.4f}) | focus {row['rmse_focus']:.4f} "
                   f"interior {row['rmse_interior']:.4f} edges {row['rmse_edges']:.4f} "
-                  f"border {row['rmse_border']:.4f}", flush=True)
+                  f"halo {row['rmse_halo']:.4f} border {row['rmse_border']:.4f}", flush=True)
     fractions = {k: float(v.mean()) for k, v in masks.items()}
     return dict(name=name, ref_spp=spp, ref_noise=noise, fractions=fractions, rows=rows,
                 images=images, masks=masks, width=cam.width, height=cam.height,
@@ -294,10 +297,11 @@ def write_markdown(results, args, file, command):
         f"input spp {', '.join(map(str, args.sharp_spp))}; reference = mean of two independent "
         f"halves, its noise RMSE = RMSE(half1 - half2) / 2 (target <= {args.noise_target}). "
         "'RMSE-n' removes that noise in quadrature. Regions (see the script's docstring): focus "
-        "|c| < 1, interior |c| >= 1, edges = within |c| + 2 px of a depth discontinuity, border = "
-        "within |c| + 1 px of the frame; 'share' = part of the total squared error.\n",
-        "| scene | ref spp | ref noise | focus | interior | edges | border |",
-        "|---|---|---|---|---|---|---|",
+        "|c| < 1, interior |c| >= 1, edges = within 3 px of a depth discontinuity, halo = beyond "
+        "that but within the discontinuity's blur (|c| + 2 px), border = within |c| + 1 px of "
+        "the frame; 'share' = part of the total squared error. Pixel fractions per region:\n",
+        "| scene | ref spp | ref noise | focus | interior | edges | halo | border |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         f = r["fractions"]
@@ -312,8 +316,8 @@ def write_markdown(results, args, file, command):
                          f"{fmt(row['rmse'])} | {fmt(row['rmse_denoised'])} | "
                          f"{row['psnr']:.2f} | {row['ssim']:.4f} |")
     lines += ["", "## RMSE by region (share of the squared error)\n",
-              "| scene | method | sharp spp | focus | interior | edges | border |",
-              "|---|---|---|---|---|---|---|"]
+              "| scene | method | sharp spp | focus | interior | edges | halo | border |",
+              "|---|---|---|---|---|---|---|---|"]
     for r in results:
         for row in r["rows"]:
             cells = [f"{fmt(row['rmse_' + k])} ({100 * row['share_' + k]:.0f}%)" for k in REGIONS]
@@ -331,7 +335,7 @@ def main():
     ap.add_argument("--max-spp", type=int, default=16384, help="cap when raising the spp")
     ap.add_argument("--noise-target", type=float, default=0.002,
                     help="raise the reference spp until its noise RMSE is at most this")
-    ap.add_argument("--sharp-spp", default="1,16", help="sharp-input spp values (squares)")
+    ap.add_argument("--sharp-spp", default="1,16,64", help="sharp-input spp values (squares)")
     ap.add_argument("--layers", type=int, default=3, help="peeled layers for the layered rows")
     ap.add_argument("--methods", default="pyramid,sliced")
     ap.add_argument("--scenes", default=None,
