@@ -17,9 +17,26 @@ def result_rows(result, truth: dict | None = None) -> list[list[str]]:
     return rows
 
 
-def format_table(rows: list[list[str]], header=("parameter", "true", "recovered", "std err",
-                                                 "rel err", "err/SE")) -> str:
-    table = [list(header)] + rows
+def format_table(rows: list[list], header=("parameter", "true", "recovered", "std err",
+                                           "rel err", "err/SE")) -> str:
+    """A Markdown table with aligned columns.
+
+    Cells may be any value (formatted with `str`; None is an empty cell); a `|` inside a cell is
+    escaped so it cannot split the row (fit messages quote |CoC|).
+
+    Raises:
+        ValueError: a row whose length differs from the header's.
+    """
+    header = [str(h) for h in header]
+    for i, r in enumerate(rows):
+        if len(r) != len(header):
+            raise ValueError(f"rows[{i}]: expected {len(header)} cells to match the header, got "
+                             f"{len(r)}")
+
+    def cell(c) -> str:
+        return "" if c is None else str(c).replace("|", "\\|")
+
+    table = [[cell(c) for c in header]] + [[cell(c) for c in r] for r in rows]
     widths = [max(len(r[i]) for r in table) for i in range(len(header))]
     lines = ["| " + " | ".join(c.ljust(w) for c, w in zip(r, widths)) + " |" for r in table]
     lines.insert(1, "|" + "|".join("-" * (w + 2) for w in widths) + "|")

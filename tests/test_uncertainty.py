@@ -177,3 +177,40 @@ def test_fit_spread_matches_bound_monte_carlo():
     # Mean within 3.5 standard errors of the mean of the truth (bias << std at this noise).
     bias = est.mean(axis=0) - np.array([1.7, 0.08])
     assert np.all(np.abs(bias) < 3.5 * crb / np.sqrt(draws)), bias / crb
+
+
+def test_sweep_bounds_and_summary():
+    """fit.sweep's truth-free bounds and its table's error / CRB column (no fitting)."""
+    from fit._table import format_table
+    from fit.sweep import guess_and_bounds, summarise
+
+    depth = np.full((8, 10), np.inf)
+    depth[:4] = 1.0
+    depth[4:6] = 10.0
+    d0, a0, bounds = guess_and_bounds(np.random.default_rng(0), depth, 60.0, coc_reach=32.0)
+    (d_lo, d_hi), (a_lo, a_hi) = bounds["focus_distance"], bounds["aperture_radius"]
+    assert (d_lo, d_hi) == (0.5, 40.0)
+    assert d_lo <= d0 <= d_hi and a_lo <= a0 <= a_hi
+    # a_hi gives a 32 px CoC at worst over the depths and the focus bounds: focus at d_lo and
+    # z = 10 (|1/0.5 - 1/10| = 1.9 is the largest |u - 1/z|).
+    k = 10 / (2 * np.tan(np.radians(30.0)))
+    assert a_hi * k * 1.9 == pytest.approx(32.0, rel=1e-12)
+
+    def row(kind, err, crb):
+        return {"kind": kind, "noise": "gaussian 0.01", "method": "defocus", "sigma": 0.01,
+                "rel_err_focus_distance": err, "rel_err_aperture_radius": -err,
+                "rel_se_focus_distance": 1e-3, "rel_se_aperture_radius": 1e-3,
+                "rel_crb_focus_distance": crb, "rel_crb_aperture_radius": crb,
+                "truth": {"aperture_radius": 0.1}, "truth_in_bounds": True,
+                "result": {"identifiable": True, "ambiguous": False}}
+
+    table = summarise([row("planes", 2e-3, 1e-3), row("planes", -2e-3, 1e-3),
+                       row("single_plane", 0.5, np.inf)])
+    lines = table.splitlines()
+    assert len(lines) == 4  # header, rule, one row per (kind, noise, method)
+    planes = next(line for line in lines if "| planes" in line)
+    cells = [c.strip() for c in planes.split("|")]
+    assert cells.count("2.00") == 2  # rms err / CRB for d and A
+    single = next(line for line in lines if "single_plane" in line)
+    assert "inf" not in single  # an infinite bound is left out, not averaged
+    assert format_table([["a|b"]], header=("x",)).splitlines()[2] == "| a\\|b |"
