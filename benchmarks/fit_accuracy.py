@@ -118,6 +118,27 @@ def fit_case(target, case, guess, bounds, args) -> dict:
     return row
 
 
+def guess_breakdown(rows, bad) -> str:
+    """Markdown lines: bad fits by the initial aperture guess relative to the truth, and how many
+    bad fits fit_focus flagged (not identifiable, not converged or ambiguous) vs called "ok"."""
+    ratio = np.array([r["guess"]["aperture_radius"] / r["truth"]["aperture_radius"]
+                      for r in rows])
+    bad = np.asarray(bad, bool)
+    flagged = np.array([not (r["identifiable"] and r["converged"]) or r["ambiguous"]
+                        for r in rows])
+    lines = [f"\nBad fits: {int(bad.sum())} of {len(rows)}; fit_focus flagged "
+             f"{int((bad & flagged).sum())} of them (not identifiable / not converged / "
+             "ambiguous) and reported "
+             f"{int((bad & ~flagged).sum())} as ok; {int((~bad & flagged).sum())} good fit(s) "
+             "were flagged.\n", "| initial A / true A | fits | bad |", "|---|---|---|"]
+    edges = [0.0, 0.03, 0.1, 0.3, 1.0, 3.0, np.inf]
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = (ratio >= lo) & (ratio < hi)
+        if m.any():
+            lines.append(f"| [{lo:g}, {hi:g}) | {int(m.sum())} | {int((bad & m).sum())} |")
+    return "\n".join(lines)
+
+
 def _fmt_pct(x: float) -> str:
     return f"{100 * x:.0f} %"
 
@@ -128,14 +149,14 @@ def _stats(rows, k):
 
 
 def _command() -> str:
-    """The command line, without the cache directory (a path of this machine)."""
+    """The command line, without the cache directories (paths of this machine)."""
     argv, out, skip = sys.argv[1:], [], False
     for a in argv:
         if skip:
             skip = False
-        elif a == "--cache":
+        elif a in ("--cache", "--jax-cache"):
             skip = True
-        elif not a.startswith("--cache="):
+        elif not a.startswith(("--cache=", "--jax-cache=")):
             out.append(a)
     return " ".join(out)
 
@@ -228,18 +249,21 @@ def suite(args) -> None:
     fails = [r for r in rows if max(abs(r["rel_err_focus_distance"]),
                                     abs(r["rel_err_aperture_radius"])) > 1e-3]
     lines += ["\n## Cases with a relative error > 1e-3\n",
-              "| seed | index | kind | true d | fit d | true A | fit A | rel err d | rel err A | "
-              "converged | identifiable | ambiguous | message |", "|" + "---|" * 13]
+              "| seed | index | kind | true d | guess d | fit d | true A | guess A | fit A | "
+              "rel err d | rel err A | converged | identifiable | ambiguous | message |",
+              "|" + "---|" * 15]
     for r in fails:
         t = r["truth"]
         lines.append(
             f"| {r['seed']} | {r['index']} | {r['kind']} | {t['focus_distance']:.4g} | "
-            f"{r['focus_distance']:.4g} | {t['aperture_radius']:.4g} | "
+            f"{r['guess']['focus_distance']:.4g} | {r['focus_distance']:.4g} | "
+            f"{t['aperture_radius']:.4g} | {r['guess']['aperture_radius']:.3g} | "
             f"{r['aperture_radius']:.4g} | {r['rel_err_focus_distance']:+.1e} | "
             f"{r['rel_err_aperture_radius']:+.1e} | {r['converged']} | {r['identifiable']} | "
             f"{r['ambiguous']} | {r['message']} |")
     if not fails:
         lines.append("(none)")
+    lines.append(guess_breakdown(rows, [r in fails for r in rows]))
     _save("suite", "\n".join(lines) + "\n", rows)
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 4))
@@ -336,12 +360,16 @@ def noise_study(args) -> None:
                          f"{p['median_fit_se']:.2e} | {s['outliers']} |")
     ratios = [s[k]["ratio"] for s in summary for k in PARAMS]
     biases = [s[k]["bias_over_std"] for s in summary for k in PARAMS]
-    lines.append(f"\nWorst std / CRB {max(ratios):.2f} (target <= 1.3: "
+    lines.append(f"\nWithout the outliers: worst std / CRB {max(ratios):.2f} (target <= 1.3: "
                  f"**{'met' if max(ratios) <= 1.3 else 'missed'}**); worst |bias| / std "
                  f"{max(biases):.2f} (target < 0.3: "
                  f"**{'met' if max(biases) < 0.3 else 'missed'}**)."
                  f" Outliers (> 10 CRB off, excluded): "
                  f"{sum(s['outliers'] for s in summary)} of {n * len(summary)}.")
+    truth_of = {s["index"]: s for s in summary}
+    bad = [any(abs(r[k] - r["truth"][k]) > 10 * truth_of[r["index"]][k]["crb"] for k in PARAMS)
+           for r in rows]
+    lines.append(guess_breakdown(rows, bad))
     _save("noise", "\n".join(lines) + "\n", {"summary": summary, "fits": rows})
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
@@ -474,9 +502,15 @@ def main(argv=None) -> None:
                    "the reference, whose pixels average jittered positions)")
     p.add_argument("--cache", default=os.path.join(RESULTS, "cache"))
     p.add_argument("--x64", action="store_true", help="run in float64")
+    p.add_argument("--jax-cache", default=None, metavar="DIR",
+                   help="JAX persistent compilation cache: a rerun at the same size skips the "
+                   "fit's compile (minutes on a loaded machine)")
     args = p.parse_args(argv)
     if args.x64:
         jax.config.update("jax_enable_x64", True)
+    if args.jax_cache:
+        os.makedirs(args.jax_cache, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", os.path.abspath(args.jax_cache))
     if args.window is None:
         args.window = max(2.0, 16.0 * args.size / 256.0)
     os.makedirs(RESULTS, exist_ok=True)
