@@ -1,33 +1,41 @@
-"""Sliced-FFT defocus: the same scatter model as `_defocus`, built for fast compiles and fitting.
-
-DESIGN.md section 3, computed differently from the pyramid in `_defocus.py`:
+"""Sliced defocus: the scatter model of DESIGN.md section 3, built for speed, fast compiles and fitting.
 
 1. Each source pixel (of the image, of every peeled layer, and of the mirror layer) has a signed
    CoC c = A k (1/z - 1/d). The signed level magnitudes `_kernels.MAGNITUDES` up to the window
    give depth slices ordered front to back (+window ... 0 ... -window). A source is split between
-   the two slices that bracket it with weights linear in c^2, so the blend of the two soft kernels
-   has the second moment of the source's own kernel (kernel radius sqrt(c^2 + R0^2), DESIGN.md)
-   and the weights are smooth in c at c = 0 (the gradient exists on the focal plane).
-2. Each slice holds premultiplied colour and coverage and is convolved with its level's soft
-   kernel (normalised by its discrete sum: energy is conserved) by one FFT product: kernels are
-   host constants, so derivatives w.r.t. focus and aperture flow only through the slice weights.
-3. Slices are composited front to back in one `lax.scan` (one traced body: compiles in seconds,
-   and reverse mode stores one (4, H, W) carry per slice): slice p is attenuated by the summed
-   blurred coverage of the slices nearer than p - 1 (a source split across two neighbouring slices
-   never occludes itself). The sum is divided by min(coverage, 1): where coverage is below 1 (what
-   a blurred foreground uncovers but no layer supplies, or the image border) the visible colours
-   are renormalised; elsewhere the scatter's energy is untouched.
+   the two slices that bracket it with weights linear in q = sign(c) c^2, so the blend of the two
+   soft kernels has the second moment of the source's own kernel (radius sqrt(c^2 + R0^2)) and
+   the weights are smooth in c at c = 0 (the gradient exists on the focal plane).
+2. Each slice holds premultiplied colour and front/back coverage and is convolved with its level's
+   soft kernel (normalised by its discrete sum: energy is conserved) by shifted sums. A level of
+   magnitude m is blurred at 1/s of the resolution (s the largest power of two with
+   m / s >= MIN_LOW_RADIUS): box-averaged, convolved with the kernel whose second moment plus
+   what the resampling adds equals the full-resolution kernel's, and bilinearly upsampled. So
+   every kernel is at most ~9 x 9 taps and the cost per slice falls as 1/s^2: a radius-16 disc
+   costs what a radius-4 disc does at a quarter of the pixels.
+3. Slices are composited front to back, one `lax.scan` per run of levels that share a resolution
+   and kernel size (compiles in seconds; reverse mode stores one carry per slice): slice p is
+   attenuated by the summed blurred coverage of the slices nearer than p - 1 (a source split
+   across two neighbouring slices never occludes itself). The coarse near runs hand their state
+   (colour, coverage, occluders) to the next finer run by one upsampling; everything behind the
+   full-resolution runs is composited at its own resolutions, upsampled once and seen through the
+   sharp runs' transmittance at full resolution (so a blurred background never leaks over a sharp
+   silhouette). The sum is divided by min(coverage, 1): where coverage is below 1 (what a blurred
+   foreground uncovers but no layer supplies, or the image border) the visible colours are
+   renormalised; elsewhere the scatter's energy is untouched.
 4. Peeled layers (`render(..., layers=K)`) add the surfaces hidden behind the first, and the
    background where a ray escapes after k hits; the mirror layer adds the reflected radiance at its
    virtual depth as colour that does not cover (the mirror surface itself supplies the coverage).
 
-`sliced_defocus(...)` is pure and jittable (the window is static); `dofjax.defocus(...,
-method="sliced")` is the validated entry point.
+Kernels depend only on static choices (window, shape), so derivatives w.r.t. focus and aperture
+flow only through the slice weights. `sliced_defocus(...)` is pure and jittable (the window is
+static); `dofjax.defocus(..., method="sliced")` is the validated entry point.
 """
 
 from __future__ import annotations
 
 import functools
+import itertools
 
 import jax
 import jax.numpy as jnp
@@ -37,11 +45,130 @@ from ._camera import Camera, coc_radius
 from ._kernels import MAGNITUDES, R0, bucket_window, soft_kernel
 from ._numerics import safe_div
 
+# Smallest kernel radius (px, at the reduced resolution) of a level: a level of magnitude m is
+# blurred at 1/s of the resolution, s the largest power of two with m / s >= MIN_LOW_RADIUS.
+MIN_LOW_RADIUS = 3.0
+
 
 def _levels(window: float) -> np.ndarray:
     """Signed level magnitudes, front (near, c > 0) to back: +window ... 0 ... -window."""
     mags = np.array([m for m in MAGNITUDES if m <= bucket_window(window)], dtype=np.float64)
     return np.concatenate([mags[::-1], -mags[1:]])
+
+
+def _factor(m: float, min_radius: float) -> int:
+    """Resolution divisor (a power of two) of the level of magnitude |m|."""
+    s = 1
+    while abs(m) / (2 * s) >= min_radius:
+        s *= 2
+    return s
+
+
+def _kernel_variance(k: np.ndarray) -> float:
+    """Mean squared distance (px^2) from the centre of a normalised kernel."""
+    h = k.shape[0] // 2
+    yy, xx = np.mgrid[-h: h + 1, -h: h + 1]
+    return float((k * (xx * xx + yy * yy)).sum())
+
+
+def _linear_taps(n: int, s: int):
+    """For each of the n s fine samples along an axis: the two coarse samples it interpolates
+    between (edges replicated) and their weights. Coarse sample i sits at fine s i + (s - 1) / 2."""
+    pos = (np.arange(n * s) + 0.5) / s - 0.5
+    i0 = np.floor(pos).astype(np.int64)
+    w1 = pos - i0
+    return np.clip(i0, 0, n - 1), np.clip(i0 + 1, 0, n - 1), 1.0 - w1, w1
+
+
+@functools.lru_cache(maxsize=16)
+def _resample_variance(s: int) -> float:
+    """Second moment (px^2, both axes) that blurring at 1/s of the resolution adds: the box
+    average over s x s blocks then the bilinear upsampling of `_upsample`, averaged over the s
+    positions of a source inside its block."""
+    if s == 1:
+        return 0.0
+    n = 8  # coarse samples; the source sits in block 4, far from the ends
+    a, b, wa, wb = _linear_taps(n, s)
+    pos = np.arange(n * s)
+    total = 0.0
+    for phase in range(s):
+        coarse = np.zeros(n)
+        coarse[4] = 1.0 / s  # its block's average (per axis)
+        spread = coarse[a] * wa + coarse[b] * wb
+        total += float((spread * (pos - 4 * s - phase) ** 2).sum())
+    return 2.0 * total / s
+
+
+@functools.lru_cache(maxsize=64)
+def _plan(window, blades, rotation, ratio, min_radius=MIN_LOW_RADIUS):
+    """Front-to-back levels, their resolution divisors and their (coarse-grid) kernels.
+
+    A level blurred at 1/s of the resolution gets the kernel whose second moment, plus what the
+    resampling adds, equals the full-resolution kernel's, so the slice keeps its blur's size.
+    """
+    levels = _levels(window)
+    factors, kernels = [], []
+    for m in levels:
+        rho = float(np.sqrt(m * m + R0 * R0))
+        flip = bool(m > 0)  # near field is the point reflection of the far field
+        s = _factor(m, min_radius)
+        if s > 1:
+            full = soft_kernel(rho, blades, rotation, ratio, flip=flip)
+            goal = (_kernel_variance(full) - _resample_variance(s)) / (s * s)
+            lo, hi = R0, rho / s
+            for _ in range(40):  # bisection on the coarse radius
+                mid = 0.5 * (lo + hi)
+                v = _kernel_variance(soft_kernel(mid, blades, rotation, ratio, flip=flip))
+                lo, hi = (mid, hi) if v < goal else (lo, mid)
+            rho = round(0.5 * (lo + hi), 9)
+        factors.append(s)
+        kernels.append(soft_kernel(rho, blades, rotation, ratio, flip=flip))
+    return levels, tuple(factors), tuple(kernels)
+
+
+def _runs(levels, factors, kernels):
+    """Consecutive levels sharing a resolution and a blur method (shifted sums for kernels of at
+    most 3 x 3, FFT products above): each run becomes one `lax.scan`."""
+    def key(p):
+        return factors[p], kernels[p].shape[0] <= 3
+    return [list(ps) for _, ps in itertools.groupby(range(len(levels)), key=key)]
+
+
+def _downsample(x, s: int):
+    """Box average over s x s blocks of the last two axes (sizes are multiples of s), as a sum of
+    s^2 strided views (one fused pass; a reshape-mean is ~10x slower on the CPU)."""
+    if s == 1:
+        return x
+    return sum(x[..., i::s, j::s] for i in range(s) for j in range(s)) / (s * s)
+
+
+def _upsample(x, s: int):
+    """Bilinear s-fold upsampling of the last two axes (the inverse grid of `_downsample`; the
+    mean is kept). Feed it materialised arrays (scan outputs): XLA fuses a gather with the
+    computation producing its operand and would redo that for every fine pixel."""
+    if s == 1:
+        return x
+    for axis in (-2, -1):
+        a, b, wa, wb = _linear_taps(x.shape[axis], s)
+        shape = [1] * x.ndim
+        shape[axis] = -1
+        x = (jnp.take(x, a, axis=axis) * jnp.asarray(wa.reshape(shape), x.dtype)
+             + jnp.take(x, b, axis=axis) * jnp.asarray(wb.reshape(shape), x.dtype))
+    return x
+
+
+def _blur(field, kernel):
+    """Zero-padded 'same' convolution of (C, h, w) with a (K, K) kernel (traced values, static
+    size), by K^2 shifted sums: for kernels this small one fused pass beats an FFT product."""
+    r = kernel.shape[0] // 2
+    _, h, w = field.shape
+    p = jnp.pad(field, ((0, 0), (r, r), (r, r)))
+    out = 0.0
+    for i in range(2 * r + 1):
+        for j in range(2 * r + 1):
+            # out(y, x) = sum_t field((y, x) - t) K(t), t = (i - r, j - r)
+            out = out + kernel[i, j] * p[:, 2 * r - i: 2 * r - i + h, 2 * r - j: 2 * r - j + w]
+    return out
 
 
 def _fft_size(n: int) -> int:
@@ -56,48 +183,38 @@ def _fft_size(n: int) -> int:
         n += 1
 
 
-@functools.lru_cache(maxsize=64)
-def _kernel_spectra(window, height, width, blades, rotation, ratio, double):
-    """(L, Hp, Wp//2+1) FFTs of the level kernels on the padded grid, and the padding."""
-    levels = _levels(window)
-    rho_max = float(np.sqrt(levels.max() ** 2 + R0 * R0))
-    pad = int(np.ceil(max(ratio, 1.0) * (rho_max + 0.5))) + 1
-    # zero padding of at least `pad` on every side (no wrap-around), rounded up to a fast size
-    hp, wp = _fft_size(height + 2 * pad), _fft_size(width + 2 * pad)
-    spectra = []
-    for m in levels:
-        # near field (c > 0) is the point reflection of the far field (DESIGN.md section 3)
-        k = soft_kernel(float(np.sqrt(m * m + R0 * R0)), blades, rotation, ratio, flip=m > 0)
-        h = k.shape[0] // 2
-        full = np.zeros((hp, wp))
-        full[: 2 * h + 1, : 2 * h + 1] = k
-        full = np.roll(full, (-h, -h), axis=(0, 1))
-        spectra.append(np.fft.rfft2(full))
-    dtype = np.complex128 if double else np.complex64
-    return levels, pad, (hp, wp), np.stack(spectra).astype(dtype)
+def _spectra(kernels, h: int, w: int, dtype):
+    """FFTs of kernels (each (K, K), K <= size) centred at the origin of the zero-padded grid of
+    an (h, w) image: (L, H, W // 2 + 1), the padding r and the grid (H, W)."""
+    r = max(k.shape[0] for k in kernels) // 2
+    hf, wf = _fft_size(h + 2 * r), _fft_size(w + 2 * r)
+    out = []
+    for k in kernels:
+        full = np.zeros((hf, wf))
+        kk = k.shape[0] // 2
+        full[: k.shape[0], : k.shape[1]] = k
+        out.append(np.fft.rfft2(np.roll(full, (-kk, -kk), axis=(0, 1))))
+    return np.stack(out).astype(np.complex128 if dtype == jnp.float64 else np.complex64), r, (hf, wf)
 
 
-def _slice_weights(c, levels: np.ndarray):
-    """Front-to-back (L, H, W) slice weights for signed CoC `c`, split into the part of each
-    slice's weight from sources nearer than its level ("front") and farther ("back").
+def _blur_fft(field, spectrum, r: int, grid):
+    """Zero-padded 'same' convolution of (C, h, w) by one FFT product on a padded grid."""
+    _, h, w = field.shape
+    hf, wf = grid
+    p = jnp.pad(field, ((0, 0), (r, hf - h - r), (r, wf - w - r)))
+    return jnp.fft.irfft2(jnp.fft.rfft2(p) * spectrum, s=grid)[:, r: r + h, r: r + w]
 
-    Weights are linear in sign(c) c^2 between the two bracketing levels.
-    """
-    asc = np.sort(levels)
-    q_lv = np.sign(asc) * asc * asc
-    c = jnp.clip(c, jnp.asarray(asc[0], c.dtype), jnp.asarray(asc[-1], c.dtype))
-    q = jnp.sign(c) * c * c
-    idx = jnp.clip(jnp.searchsorted(jnp.asarray(q_lv, c.dtype), q, side="right") - 1, 0,
-                   len(asc) - 2)
-    lo = jnp.asarray(q_lv, c.dtype)[idx]
-    hi = jnp.asarray(q_lv, c.dtype)[idx + 1]
-    t = (q - lo) / (hi - lo)
-    n = len(asc)
-    # the farther level (lo) sees the source in front of it; the nearer one (hi) behind it
-    front = jax.nn.one_hot(idx, n, dtype=c.dtype, axis=0) * (1.0 - t)
-    back = jax.nn.one_hot(idx + 1, n, dtype=c.dtype, axis=0) * t
-    # ascending order -> front-to-back order (levels are descending)
-    return front[::-1], back[::-1]
+
+def _level_weights(q, q_lv, p_first: bool, p_last: bool):
+    """(front, back) weights of one level for sources with q = sign(c) c^2: a hat in q between
+    the bracketing levels q_lv = (q_prev, q_p, q_next) (descending), split into the part from
+    sources nearer than the level (front, q > q_p) and from farther ones (back). The outermost
+    levels take every source beyond them (|c| beyond the window is clamped)."""
+    q_prev, q_p, q_next = q_lv
+    front = jnp.where(p_first, 1.0, jnp.clip((q_prev - q) / (q_prev - q_p), 0.0, 1.0))
+    back = jnp.where(p_last, 1.0, jnp.clip((q - q_next) / (q_p - q_next), 0.0, 1.0))
+    nearer = q > q_p
+    return jnp.where(nearer, front, 0.0), jnp.where(nearer, 0.0, back)
 
 
 def surface_sources(rgb, depth, reflection, layers, camera):
@@ -139,43 +256,114 @@ def _sources(rgb, depth, reflection, reflection_depth, layers, camera):
 
 
 def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rotation=0.0,
-                   ratio=1.0, reflection=None, reflection_depth=None, layers=None):
-    """Defocus by depth slices and FFT products (pure, jittable; `window` px is static).
+                   ratio=1.0, reflection=None, reflection_depth=None, layers=None,
+                   min_radius: float = MIN_LOW_RADIUS):
+    """Defocus by depth slices, each blurred by shifted sums at its own resolution (pure,
+    jittable; `window` px and `min_radius` are static).
 
     Arguments as `dofjax.defocus`; no input validation here (the public wrapper does it).
-    |c| beyond the window is clamped to it.
+    |c| beyond the window is clamped to it. `min_radius`: the smallest coarse-grid kernel radius
+    (px) a level is blurred with (`MIN_LOW_RADIUS`; larger is slower and closer to the exact
+    full-resolution disc, inf blurs every level at full resolution).
     """
     height, width = depth.shape
     dtype = rgb.dtype
-    levels, pad, (hp, wp), spectra = _kernel_spectra(
-        float(window), height, width, blades, float(rotation), float(ratio), dtype == jnp.float64)
-    fields = 0.0
-    for colour, c, alpha, covers in _sources(rgb, depth, reflection, reflection_depth, layers,
-                                             camera):
-        front, back = _slice_weights(c, levels)
-        front, back = front * alpha, back * alpha
-        w = front + back
-        cov = (front, back) if covers else (jnp.zeros_like(w), jnp.zeros_like(w))
-        fields = fields + jnp.concatenate(
-            [w[:, None] * jnp.moveaxis(colour, -1, 0)[None], cov[0][:, None], cov[1][:, None]],
-            axis=1)
-    fields = jnp.pad(fields, ((0, 0), (0, 0), (pad, hp - height - pad), (pad, wp - width - pad)))
+    levels, factors, kernels = _plan(float(window), blades, float(rotation), float(ratio),
+                                     float(min_radius))
+    srcs = _sources(rgb, depth, reflection, reflection_depth, layers, camera)
+    s_max = max(factors)
+    # pad to a multiple of the coarsest divisor (no sources there; cropped at the end)
+    hp, wp = -(-height // s_max) * s_max, -(-width // s_max) * s_max
 
-    def composite(carry, x):
-        # occluders of slice p: every slice nearer than p - 1, and the part of p - 1 whose
-        # sources are not shared with p (they lie in front of level p - 1)
-        occluders, prev_front, prev_back, acc = carry
-        field, spectrum = x
-        blurred = jnp.fft.irfft2(jnp.fft.rfft2(field) * spectrum[None], s=(hp, wp))
+    def pad(x):
+        return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((0, hp - height), (0, wp - width)))
+
+    colour = pad(jnp.stack([jnp.moveaxis(s[0], -1, 0) for s in srcs]))  # (S, 3, hp, wp)
+    c = pad(jnp.stack([s[1] for s in srcs]))
+    q = jnp.sign(c) * c * c
+    alpha = pad(jnp.stack([s[2] for s in srcs]))
+    covers = jnp.asarray([s[3] for s in srcs], dtype)[:, None, None]
+    q_lv = np.sign(levels) * levels * levels
+    n = len(levels)
+
+    def run(state, ps, s):
+        """Composite levels `ps` (one resolution 1/s) front to back onto `state`."""
+        h, w = hp // s, wp // s
+        size = max(kernels[p].shape[0] for p in ps)
+        if size <= 3:
+            ks = np.zeros((len(ps), size, size))
+            for i, p in enumerate(ps):
+                o = (size - kernels[p].shape[0]) // 2
+                ks[i, o: size - o, o: size - o] = kernels[p]
+            ks = jnp.asarray(ks, dtype)
+
+            def blur(f, k):
+                return _blur(f, k)
+        else:
+            ks, r, grid = _spectra([kernels[p] for p in ps], h, w, dtype)
+            ks = jnp.asarray(ks)
+
+            def blur(f, k):
+                return _blur_fft(f, k, r, grid)
+
+        q3 = np.array([(q_lv[max(p - 1, 0)] + (p == 0), q_lv[p],
+                        q_lv[min(p + 1, n - 1)] - (p == n - 1)) for p in ps])
+        xs = (jnp.asarray(q3, dtype), jnp.asarray([p == 0 for p in ps]),
+              jnp.asarray([p == n - 1 for p in ps]), ks)
+
+        def body(state, x):
+            acc_rgb, acc_cov, occluders, prev_front, prev_back = state
+            q3, first, last, kernel = x
+            front, back = _level_weights(q, (q3[0], q3[1], q3[2]), first, last)
+            front, back = front * alpha, back * alpha
+            field = jnp.concatenate([((front + back)[:, None] * colour).sum(0),
+                                     (front * covers).sum(0)[None], (back * covers).sum(0)[None]])
+            blurred = blur(_downsample(field, s), kernel)
+            rgb_b, front_b, back_b = blurred[:3], blurred[3], blurred[4]
+            # slice p is attenuated by every slice nearer than p - 1 and by the part of p - 1
+            # whose sources lie in front of level p - 1 (a source split across two
+            # neighbouring slices never occludes itself)
+            transmit = jnp.clip(1.0 - occluders - prev_front, 0.0, 1.0)
+            return (acc_rgb + transmit * rgb_b, acc_cov + transmit * (front_b + back_b),
+                    occluders + prev_front + prev_back, front_b, back_b), None
+
+        return jax.lax.scan(body, state, xs)[0]
+
+    def zeros(s):
+        z = jnp.zeros((hp // s, wp // s), dtype)
+        return jnp.zeros((3,) + z.shape, dtype), z, z, z, z
+
+    runs = _runs(levels, factors, kernels)
+    s_min = min(factors)
+    last_fine = max(i for i, ps in enumerate(runs) if factors[ps[0]] == s_min)
+    # Near side and the finest runs: the state (accumulated colour and coverage, occluders) is
+    # carried to each finer run by one upsampling of its 7 channels.
+    s_cur, state = factors[runs[0][0]], zeros(factors[runs[0][0]])
+    for ps in runs[: last_fine + 1]:
+        s = factors[ps[0]]
+        if s != s_cur:
+            up = _upsample(jnp.concatenate([state[0], jnp.stack(state[1:])]), s_cur // s)
+            state, s_cur = (up[:3],) + tuple(up[3:]), s
+        state = run(state, ps, s)
+    acc_rgb, acc_cov, occluders, prev_front, prev_back = state
+
+    # Far side: seen through the finest runs' (sharp) transmittance, applied at full resolution;
+    # the far runs occlude each other at their own, coarser resolutions.
+    if last_fine + 1 < len(runs):
         transmit = jnp.clip(1.0 - occluders - prev_front, 0.0, 1.0)
-        colour_cov = jnp.concatenate([blurred[:3], blurred[3:4] + blurred[4:5]])
-        carry = (occluders + prev_front + prev_back, blurred[3], blurred[4],
-                 acc + transmit * colour_cov)
-        return carry, None
-
-    zero = jnp.zeros((hp, wp), dtype)
-    init = (zero, zero, zero, jnp.zeros((4, hp, wp), dtype))
-    (_, _, _, acc), _ = jax.lax.scan(composite, init, (fields, jnp.asarray(spectra)))
-    acc = acc[:, pad: pad + height, pad: pad + width]
-    out = safe_div(acc[:3], jnp.minimum(acc[3], 1.0))
+        z = jnp.zeros_like(prev_back)
+        state = (None, None, z, z, prev_back)  # prev_back: shared with the first far slice
+        far = []
+        for ps in runs[last_fine + 1:]:
+            s = factors[ps[0]]
+            state = zeros(s)[:2] + tuple(_downsample(x, s // s_cur) for x in state[2:])
+            state = run(state, ps, s)
+            far.append((s, jnp.concatenate([state[0], state[1][None]])))
+            s_cur = s
+        s_back, back = far[-1]
+        for s, a in far[-2::-1]:  # coarsest to finest, then to full resolution
+            back, s_back = a + _upsample(back, s_back // s), s
+        back = transmit * _upsample(back, s_back // s_min)
+        acc_rgb, acc_cov = acc_rgb + back[:3], acc_cov + back[3]
+    out = safe_div(acc_rgb[:, :height, :width], jnp.minimum(acc_cov[:height, :width], 1.0))
     return jnp.moveaxis(out, 0, -1)
