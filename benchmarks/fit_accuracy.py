@@ -380,7 +380,7 @@ def noise_study(args) -> None:
             ax.hist(np.clip(z, -6, 6), bins=np.linspace(-6, 6, 25), density=True,
                     histtype="step", label=f"sample {s['index']} ({s['kind']})")
         ax.plot(x, np.exp(-x * x / 2) / math.sqrt(2 * math.pi), "k--", label="N(0, 1): the CRB")
-        ax.set_xlabel(f"({SHORT[k]} fit - true) / CRB")
+        ax.set_xlabel(f"({SHORT[k]} fit - true) / CRB (clipped to +-6: wrong basins)")
         ax.legend(fontsize=7)
     fig.suptitle(f"sigma = {args.sigma:g}, {n} draws, {args.size}x{args.size}")
     fig.tight_layout()
