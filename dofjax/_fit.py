@@ -12,8 +12,11 @@ How the fit works:
 - The sharp RGB-D does not depend on d or A: only the defocus model runs per solver step.
 - Multi-start: a grid of u inside the bounds (plus the user's guess), all solved in one
   `eqx.filter_vmap` batch, on a 2^L-downsampled copy of the images (pixel scale k / 2^L, so the CoC
-  in pixels shrinks with the image). The best start and the best start on the *other side* of the
-  scene's median inverse depth are then polished at full resolution.
+  in pixels shrinks with the image). Each start first takes the aperture with the lowest loss
+  among the guess and a log-spaced grid inside the bounds (forward passes only), so a guess far
+  below the true aperture (an image that looks sharp: no information about focus) does not
+  strand the starts. The best start and the best start on the *other side* of the scene's median
+  inverse depth are then polished at full resolution.
 - Near/far ambiguity: |c| is symmetric about each depth, so a scene with (almost) one depth fits
   equally well with focus in front of or behind it. If the polished alternative's sum of squares
   exceeds the best one's by less than `ambiguity_threshold * s^2` (a likelihood-ratio test; s^2
@@ -49,6 +52,8 @@ LOSSES = ("l2", "huber", "cauchy")
 _ROBUST_K = {"huber": 1.345, "cauchy": 2.385}
 # A CoC below this (px) is hidden by the defocus model's sub-pixel floor: the image looks sharp.
 _MIN_VISIBLE_COC = 0.25
+# Log-spaced apertures inside the bounds that each multi-start tries before solving (plus the guess).
+_APERTURE_GRID = 6
 # Internal bound fraction closer than this to 0 or 1 counts as "at the bound".
 _AT_BOUND = 1e-3
 
@@ -320,6 +325,25 @@ def _fit_core(data, coarse, camera, camera_c, param, y_starts, u_scene, delta0, 
     # every start waits for the slowest: loose tolerances and few steps.
     r1, a1 = max(rtol, 1e-4), max(atol, 1e-8)
     spec1 = dataclasses.replace(spec, max_steps=min(spec.max_steps, spec.start_steps))
+    y_starts, y_apertures = y_starts
+    if y_apertures is not None:
+        # Each start's aperture is the best of a grid in log A (plus the guess) by the loss at
+        # the multi-start level: from an aperture far below the truth every pixel looks sharp,
+        # the loss is flat in the focus and the start cannot find the basin (the noise study in
+        # benchmarks/fit_accuracy.py lost 27 of 28 such fits before this).
+        ai = spec.free.index(1)
+
+        def grid_loss(y):
+            r = _residual_ul(param.to_ul(y, spec.free), src, cam1, model1, spec.loss,
+                             delta0)
+            return jnp.sum(r * r)
+
+        def best_aperture(y):
+            cand = jnp.broadcast_to(y, (y_apertures.shape[0],) + y.shape).at[:, ai].set(
+                y_apertures)
+            return y_apertures[jnp.argmin(jax.vmap(grid_loss)(cand))]
+
+        y_starts = y_starts.at[:, ai].set(jax.lax.map(best_aperture, y_starts))
     ys, loss, steps, ok = _solve_many(y_starts, src, cam1, param, spec1, model1, delta0, r1, a1)
     ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(ys)
     best, alt, has_alt = _pick(ul_end[:, 0], loss, u_scene)
@@ -544,8 +568,9 @@ def _coarse_camera(camera: Camera, f: int) -> Camera:
 
 
 def _levels(hw: tuple[int, int], coarse_size: int | None) -> int:
+    """Downsampling factor 2^L of the multi-start level (1: full resolution)."""
     if coarse_size is None:
-        return 0
+        return 1
     f = 1
     while min(hw) // (2 * f) >= coarse_size:
         f *= 2
@@ -584,6 +609,12 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
             y.append(logit(fu) if i == 0 else logit(frac0[1]))
         y_starts.append(y)
     y_starts = jnp.asarray(np.array(y_starts), dtype)
+    # apertures tried for every start (`_fit_core`): the guess and a log-spaced grid in the bounds
+    y_apertures = None
+    if 1 in free:
+        fracs = np.concatenate([[frac0[1]], (np.arange(_APERTURE_GRID) + 0.5) / _APERTURE_GRID])
+        y_apertures = jnp.asarray(logit(fracs), dtype)
+    y_starts = (y_starts, y_apertures)
     inv = 1.0 / depth_a[np.isfinite(depth_a) & (weight > 0)]
     u_scene = jnp.asarray(float(np.median(inv)), dtype)
     f = _levels(depth_a.shape, coarse_size)
@@ -749,7 +780,9 @@ def fit_focus(
         mask: (H, W) bool or weights >= 0: pixels to fit (e.g. exclude clipped highlights).
         fixed: parameter names held at the camera's value, e.g. ("aperture_radius",).
         starts: number of multi-start points (the user's guess plus starts - 1 grid points in
-            u = 1/d inside the bounds), solved as one vmapped batch.
+            u = 1/d inside the bounds), solved as one vmapped batch. Each start's aperture is
+            the best (lowest multi-start-level loss) of the guess and 6 log-spaced values inside
+            the aperture bounds.
         rtol, atol: optimistix tolerances for the final (full-resolution) solve, in the
             solver's internal coordinates (logit-mapped u and log A) and the mean squared residual.
         max_steps: per polish solve; start_steps: per multi-start solve (at tolerance 1e-4).
