@@ -14,9 +14,12 @@
    every kernel is at most ~9 x 9 taps and the cost per slice falls as 1/s^2: a radius-16 disc
    costs what a radius-4 disc does at a quarter of the pixels.
 3. Slices are composited front to back, one `lax.scan` per run of levels that share a resolution
-   and kernel size (compiles in seconds; reverse mode stores one carry per slice): slice p is
-   attenuated by the summed blurred coverage of the slices nearer than p - 1 (a source split
-   across two neighbouring slices never occludes itself). The coarse near runs hand their state
+   and blur method (compiles in seconds; reverse mode stores one carry per slice). Slice p is
+   attenuated by the blurred coverage of every slice nearer than p - 1, and by slice p - 1's
+   sources in front of level p - 1 fully and those a fraction t of the way from level p - 1 to
+   p by (1 - t): occlusion is continuous in c (a source crossing a level never switches its
+   occlusion of the next slice on or off), and a source at level p never hides its own share of
+   slice p. The coarse near runs hand their state
    (colour, coverage, occluders) to the next finer run by one upsampling; everything behind the
    full-resolution runs is composited at its own resolutions, upsampled once and seen through the
    sharp runs' transmittance at full resolution (so a blurred background never leaks over a sharp
@@ -312,20 +315,23 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
               jnp.asarray([p == n - 1 for p in ps]), ks)
 
         def body(state, x):
-            acc_rgb, acc_cov, occluders, prev_front, prev_back = state
+            acc_rgb, acc_cov, occluders, prev_cov, prev_occ = state
             q3, first, last, kernel = x
-            front, back = _level_weights(q, (q3[0], q3[1], q3[2]), first, last)
-            front, back = front * alpha, back * alpha
+            front_w, back_w = _level_weights(q, (q3[0], q3[1], q3[2]), first, last)
+            front, back = front_w * alpha, back_w * alpha
+            # what this slice hides of the next one: its sources in front of the level fully,
+            # those a fraction t of the way to the next level by (1 - t) (= back_w), so a source
+            # crossing a level never switches its occlusion on or off (the loss stays continuous
+            # in focus and aperture)
+            occ = front + back * back_w
             field = jnp.concatenate([((front + back)[:, None] * colour).sum(0),
-                                     (front * covers).sum(0)[None], (back * covers).sum(0)[None]])
+                                     ((front + back) * covers).sum(0)[None],
+                                     (occ * covers).sum(0)[None]])
             blurred = blur(_downsample(field, s), kernel)
-            rgb_b, front_b, back_b = blurred[:3], blurred[3], blurred[4]
-            # slice p is attenuated by every slice nearer than p - 1 and by the part of p - 1
-            # whose sources lie in front of level p - 1 (a source split across two
-            # neighbouring slices never occludes itself)
-            transmit = jnp.clip(1.0 - occluders - prev_front, 0.0, 1.0)
-            return (acc_rgb + transmit * rgb_b, acc_cov + transmit * (front_b + back_b),
-                    occluders + prev_front + prev_back, front_b, back_b), None
+            rgb_b, cov_b, occ_b = blurred[:3], blurred[3], blurred[4]
+            transmit = jnp.clip(1.0 - occluders - prev_occ, 0.0, 1.0)
+            return (acc_rgb + transmit * rgb_b, acc_cov + transmit * cov_b,
+                    occluders + prev_cov, cov_b, occ_b), None
 
         return jax.lax.scan(body, state, xs)[0]
 
@@ -345,14 +351,16 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
             up = _upsample(jnp.concatenate([state[0], jnp.stack(state[1:])]), s_cur // s)
             state, s_cur = (up[:3],) + tuple(up[3:]), s
         state = run(state, ps, s)
-    acc_rgb, acc_cov, occluders, prev_front, prev_back = state
+    acc_rgb, acc_cov, occluders, prev_cov, prev_occ = state
 
     # Far side: seen through the finest runs' (sharp) transmittance, applied at full resolution;
     # the far runs occlude each other at their own, coarser resolutions.
     if last_fine + 1 < len(runs):
-        transmit = jnp.clip(1.0 - occluders - prev_front, 0.0, 1.0)
-        z = jnp.zeros_like(prev_back)
-        state = (None, None, z, z, prev_back)  # prev_back: shared with the first far slice
+        transmit = jnp.clip(1.0 - occluders - prev_occ, 0.0, 1.0)
+        z = jnp.zeros_like(prev_occ)
+        # the part of the last fine slice that the first far slice sees (not in `transmit`)
+        # still hides the far slices behind it
+        state = (None, None, z, prev_cov - prev_occ, z)
         far = []
         for ps in runs[last_fine + 1:]:
             s = factors[ps[0]]
