@@ -281,7 +281,7 @@ def error_map(result, args, file):
     axes[0].contour(m["edges"], levels=[0.5], colors="cyan", linewidths=0.5)
     axes[0].contour(m["focus"], levels=[0.5], colors="lime", linewidths=0.5)
     fig.tight_layout()
-    fig.savefig(file, dpi=110)
+    fig.savefig(file, dpi=80)
     plt.close(fig)
 
 
@@ -366,8 +366,13 @@ def main():
             results.append(r)
     base = os.path.splitext(args.out)[0]
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
-    command = "python benchmarks/defocus_accuracy.py " + " ".join(
-        a for a in os.sys.argv[1:] if not a.startswith(("--out", "--cache")))
+    shown, skip = [], False
+    for a in os.sys.argv[1:]:  # output paths are this machine's business, not the table's
+        if skip or a.startswith(("--out", "--cache")):
+            skip = a in ("--out", "--cache")
+            continue
+        shown.append(a)
+    command = "python benchmarks/defocus_accuracy.py " + " ".join(shown)
     write_markdown(results, args, args.out, command.strip())
     with open(base + ".json", "w") as fh:
         json.dump([{k: v for k, v in r.items() if k not in ("images", "masks")} for r in results],
