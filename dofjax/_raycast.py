@@ -261,13 +261,14 @@ def _radiance(scene: Scene, o, d, tmin):
     return direct + reflection, t, reflection, reflection_t
 
 
-def _front_t(scene: Scene, o, d, tmin):
+def _front_t(scene: Scene, o, d, tmin, closed):
     """Nearest t beyond `tmin` of a surface *entered* from the ray's side (flat (N,) rays).
 
     Closed primitives count only where the ray enters them: a sphere's near root, a box's entry
-    slab, a triangle whose winding normal `(v1 - v0) x (v2 - v0)` faces the ray (the outward side
-    of a counter-clockwise mesh, as OBJ files wind them). Quads (two-sided cards) and planes count
-    from either side. +inf where there is none.
+    slab, a triangle of a closed mesh (`closed`, (P,) bool, see `_closed_triangles`) whose winding
+    normal `(v1 - v0) x (v2 - v0)` faces the ray (the outward side of a counter-clockwise mesh, as
+    OBJ files wind them). Quads, open triangles (two-sided cards) and planes count from either
+    side. +inf where there is none.
     """
     o, d = materialise(o, d)
     best = jnp.full((o.shape[0],), jnp.inf, dtype=d.dtype)
@@ -292,7 +293,9 @@ def _front_t(scene: Scene, o, d, tmin):
         elif name == "triangles":
             v0 = _prims3(prims.v0)
             n = _cross3(_sub3(_prims3(prims.v1), v0), _sub3(_prims3(prims.v2), v0))
-            t = jnp.where(_dot3(dd, n) < 0, t_fn(prims, o, d, tmin), jnp.inf)
+            facing = _dot3(dd, n) < 0
+            facing = facing | (True if closed is None else ~closed[None, :])
+            t = jnp.where(facing, t_fn(prims, o, d, tmin), jnp.inf)
         else:
             t = t_fn(prims, o, d, tmin)
         best = jnp.minimum(best, jnp.min(t, axis=-1))
@@ -308,7 +311,31 @@ def _plane_t(scene: Scene, o, d, tmin):
     return jnp.min(plane_t(planes, o, d, tmin), axis=-1)
 
 
-def _peel(scene: Scene, o, d, layers: int):
+def _closed_triangles(scene: Scene):
+    """(P,) bool: triangles all of whose edges are shared with exactly one other triangle (a
+    closed, watertight mesh part), found on the host; None without triangles. Under tracing the
+    positions are unknown and every triangle counts as open (two-sided)."""
+    tr = scene.triangles
+    if tr is None or tr.material.shape[0] == 0:
+        return None
+    if any(isinstance(x, jax.core.Tracer) for x in (tr.v0, tr.v1, tr.v2)):
+        return jnp.zeros(tr.material.shape, dtype=bool)
+    v = np.stack([np.asarray(tr.v0), np.asarray(tr.v1), np.asarray(tr.v2)], axis=1)  # (P, 3, 3)
+    a = v.reshape(-1, 3)
+    b = np.roll(v, -1, axis=1).reshape(-1, 3)
+    # an edge is its two end points in lexicographic order (meshes share exact vertex copies)
+    rows = np.arange(a.shape[0])
+    axis = np.argmax(a != b, axis=1)  # first coordinate where the end points differ
+    a_first = a[rows, axis] <= b[rows, axis]
+    lo = np.where(a_first[:, None], a, b)
+    hi = np.where(a_first[:, None], b, a)
+    _, inverse, counts = np.unique(np.concatenate([lo, hi], axis=1), axis=0, return_inverse=True,
+                                   return_counts=True)
+    shared = (counts[inverse.reshape(-1)] == 2).reshape(-1, 3)
+    return jnp.asarray(shared.all(axis=1))
+
+
+def _peel(scene: Scene, o, d, layers: int, closed=None):
     """The first `layers` things seen along each ray, front to back (DESIGN.md section 3).
 
     Layer 0 is exactly `_radiance` from the ray origin. Layer k >= 1 is the next surface *entered*
@@ -332,7 +359,7 @@ def _peel(scene: Scene, o, d, layers: int):
 
     def layer(carry, k):
         tmin, ended = carry
-        t_front = _front_t(scene, o, d, tmin)
+        t_front = _front_t(scene, o, d, tmin, closed)
         # Hidden layers start just short of the surface `_front_t` found, so that the shading path
         # (the plain nearest hit) finds exactly that surface; back-facing hits before it are
         # skipped. Layer 0 is the plain render.
@@ -502,7 +529,7 @@ def _box_filter_layers(rgb, t, alpha, colour, s_rgb, s_t, s_alpha):
 
 
 @eqx.filter_jit
-def _render(scene: Scene, camera: Camera, spp: int, layers: int | None) -> RGBD:
+def _render(scene: Scene, camera: Camera, spp: int, layers: int | None, closed) -> RGBD:
     global _render_traces
     _render_traces += 1
     h, w = camera.height, camera.width
@@ -516,7 +543,7 @@ def _render(scene: Scene, camera: Camera, spp: int, layers: int | None) -> RGBD:
         return _radiance(scene, o, d, _tmin(o, d))
 
     def peel(o, d):
-        return _peel(scene, o, d, n_layers)
+        return _peel(scene, o, d, n_layers, closed)
 
     if spp == 1 or layers is not None:
         rgb, t, refl, refl_t, alpha = _chunked(peel, chunk, o, d)
@@ -583,9 +610,10 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
     Peeled layers are what a blurred foreground can uncover (DESIGN.md section 3). Layer 0 is the
     render itself: `layers.rgb[0]` is `rgb` (at any spp) and `layers.depth[0]` is `depth`. Layer
     k >= 1 is the next surface the pixel-centre ray *enters* from the camera side: the back wall of
-    a sphere, a box or a closed triangle mesh (triangles face where their winding normal
-    `(v1 - v0) x (v2 - v0)` points, counter-clockwise as in OBJ files) is skipped; quads are
-    two-sided cards and count from both sides. Layer 0 has alpha 1 everywhere (on a miss it is the
+    a sphere, a box or a closed triangle mesh is skipped (a triangle whose three edges are each
+    shared with exactly one other triangle is part of a closed mesh, found on the host; it faces
+    where its winding normal `(v1 - v0) x (v2 - v0)` points, counter-clockwise as in OBJ files);
+    quads and open triangles are two-sided cards and count from both sides. Layer 0 has alpha 1 everywhere (on a miss it is the
     background, depth +inf); a hidden layer has alpha 1 where its ray entered a surface. Where the
     ray escapes after k >= 1 surfaces, layer k and all after it have alpha 0, depth +inf and the
     background colour (the background is not peeled as a hidden surface: where the defocus
@@ -611,4 +639,5 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
         raise TypeError(f"render: scene must be a dofjax.Scene, got {type(scene).__name__}")
     if not isinstance(camera, Camera):
         raise TypeError(f"render: camera must be a dofjax.Camera, got {type(camera).__name__}")
-    return _render(scene, camera, int(spp), None if layers is None else int(layers))
+    closed = None if layers is None else _closed_triangles(scene)
+    return _render(scene, camera, int(spp), None if layers is None else int(layers), closed)

@@ -416,19 +416,30 @@ def test_layers_inside_a_sphere_and_closed_mesh():
             b, c = c, b
         tris.append({"type": "triangle", "v0": a.tolist(), "v1": b.tolist(), "v2": c.tolist(),
                      "material": "m"})
+    # an open triangle (a standing card) wound away from the camera, at the right of the view
+    card = {"type": "triangle", "v0": [-1.5, -1, 6.0], "v1": [-1.5, 1, 6.0], "v2": [-0.8, 0, 6.0],
+            "material": "c"}
     scene = dofjax.scene_from_dict({
         "materials": {"m": {"ambient": 0, "diffuse": 0, "emission": [1, 0, 0]},
+                      "c": {"ambient": 0, "diffuse": 0, "emission": [0, 1, 0]},
                       "w": {"ambient": 0, "diffuse": 0, "emission": [0, 0, 1]}},
-        "objects": tris + [{"type": "plane", "point": [0, 0, 8], "normal": [0, 0, -1],
-                            "material": "w"}],
+        "objects": tris + [card, {"type": "plane", "point": [0, 0, 8], "normal": [0, 0, -1],
+                                  "material": "w"}],
     })
-    cam = Camera(16, 16, fov=20.0, focus_distance=5.0, aperture_radius=0.0)
+    np.testing.assert_array_equal(_raycast._closed_triangles(scene), [True] * 4 + [False])
+    cam = Camera(32, 16, fov=30.0, focus_distance=5.0, aperture_radius=0.0)
     lay = dofjax.render(scene, cam, layers=3).layers
-    hit = np.asarray(lay.depth[0]) < 6.0
+    depth0 = np.asarray(lay.depth[0])
+    hit = depth0 < 5.9
     assert hit.sum() > 10
     np.testing.assert_allclose(np.asarray(lay.depth[1])[hit], 8.0, rtol=1e-10)
     np.testing.assert_allclose(np.asarray(lay.rgb[1])[hit], rows([0, 0, 1.0], hit))
     assert np.all(np.asarray(lay.alpha[2])[hit] == 0.0)  # the plane is opaque
+    # the card seen from its back is a surface like any other: the plane is behind it
+    on_card = np.abs(depth0 - 6.0) < 1e-9
+    assert on_card.sum() > 5
+    np.testing.assert_allclose(np.asarray(lay.rgb[0])[on_card], rows([0, 1.0, 0], on_card))
+    np.testing.assert_allclose(np.asarray(lay.depth[1])[on_card], 8.0, rtol=1e-10)
 
 
 def test_supersampled_layers_are_box_filtered():
