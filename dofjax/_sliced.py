@@ -26,9 +26,9 @@
    silhouette). The sum is divided by min(coverage, 1): where coverage is below 1 (what a blurred
    foreground uncovers but no layer supplies, or the image border) the visible colours are
    renormalised; elsewhere the scatter's energy is untouched.
-4. Peeled layers (`render(..., layers=K)`) add the surfaces hidden behind the first, and the
-   background where a ray escapes after k hits; the mirror layer adds the reflected radiance at its
-   virtual depth as colour that does not cover (the mirror surface itself supplies the coverage).
+4. Peeled layers (`render(..., layers=K)`) add the surfaces a blurred foreground can uncover.
+   The mirror layer's reflected radiance is blurred at its virtual depth in the same slices and
+   added on top without occlusion (the mirror surface that carries it must not hide it).
 
 Kernels depend only on static choices (window, shape), so derivatives w.r.t. focus and aperture
 flow only through the slice weights. `sliced_defocus(...)` is pure and jittable (the window is
@@ -224,38 +224,27 @@ def surface_sources(rgb, depth, reflection, layers, camera):
     """(colour, z-depth, coverage) of every surface that can be seen through the lens.
 
     The visible image (minus the mirror's reflected radiance, which is its own source) covers every
-    pixel. Peeled layers k >= 1 add the surfaces hidden behind it, and the background where the ray
-    escapes after exactly k surfaces (layer alpha is 0 there, but something is seen). A hidden
-    surface matters only where its blur differs from the visible one's by more than a pixel: closer
-    than that (e.g. the back wall of a closed object) it would add nothing but double counting.
+    pixel. Peeled layers k >= 1 add the surfaces hidden behind it (the ray caster's layers are what
+    a blurred foreground can uncover; alpha 0 means nothing more is there). A hidden surface
+    matters only where its blur differs from the visible one's by more than a pixel: closer than
+    that it would add nothing but double counting.
     """
     ones = jnp.ones(depth.shape, rgb.dtype)
     surface = rgb if reflection is None else rgb - reflection
     out = [(surface, depth, ones)]
     if layers is not None:
         c0 = coc_radius(depth, camera)
-        background = jnp.full_like(depth, jnp.inf)
-        c_inf = coc_radius(background, camera)
         for k in range(1, layers.depth.shape[0]):
             ck = coc_radius(layers.depth[k], camera)
             useful = jnp.clip(jnp.abs(ck - c0) - 1.0, 0.0, 1.0).astype(rgb.dtype)
             out.append((layers.rgb[k], layers.depth[k], layers.alpha[k] * useful))
-            escaped = (1.0 - layers.alpha[k]) * layers.alpha[k - 1]
-            useful = jnp.clip(jnp.abs(c_inf - c0) - 1.0, 0.0, 1.0).astype(rgb.dtype)
-            out.append((layers.rgb[k], background, escaped * useful))
     return out
 
 
-def _sources(rgb, depth, reflection, reflection_depth, layers, camera):
-    """(colour, signed CoC, coverage, counts-as-coverage) for every source of light; the mirror's
-    reflected radiance is colour that does not cover (the mirror surface supplies coverage)."""
-    out = [(colour, coc_radius(z, camera).astype(rgb.dtype), alpha, True)
-           for colour, z, alpha in surface_sources(rgb, depth, reflection, layers, camera)]
-    if reflection is not None:
-        ones = jnp.ones(depth.shape, rgb.dtype)
-        out.append((reflection, coc_radius(reflection_depth, camera).astype(rgb.dtype), ones,
-                    False))
-    return out
+def _sources(rgb, depth, layers, camera, reflection=None):
+    """(colour, signed CoC, coverage) of every surface (see `surface_sources`)."""
+    return [(colour, coc_radius(z, camera).astype(rgb.dtype), alpha)
+            for colour, z, alpha in surface_sources(rgb, depth, reflection, layers, camera)]
 
 
 def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rotation=0.0,
@@ -273,7 +262,8 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     dtype = rgb.dtype
     levels, factors, kernels = _plan(float(window), blades, float(rotation), float(ratio),
                                      float(min_radius))
-    srcs = _sources(rgb, depth, reflection, reflection_depth, layers, camera)
+    srcs = _sources(rgb, depth, layers, camera, reflection)
+    mirror = reflection is not None
     s_max = max(factors)
     # pad to a multiple of the coarsest divisor (no sources there; cropped at the end)
     hp, wp = -(-height // s_max) * s_max, -(-width // s_max) * s_max
@@ -285,7 +275,14 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     c = pad(jnp.stack([s[1] for s in srcs]))
     q = jnp.sign(c) * c * c
     alpha = pad(jnp.stack([s[2] for s in srcs]))
-    covers = jnp.asarray([s[3] for s in srcs], dtype)[:, None, None]
+    if mirror:
+        # the mirror's reflected radiance: blurred at its virtual depth and added on top, seen
+        # through the mirror (the mirror surface, a source above, must not occlude it; like the
+        # pyramid method, nearer surfaces do not occlude it either)
+        refl = pad(jnp.moveaxis(reflection, -1, 0))
+        c_r = pad(coc_radius(reflection_depth, camera).astype(dtype))
+        q_r = jnp.sign(c_r) * c_r * c_r
+    nc = 6 if mirror else 3  # accumulated colour channels: surfaces (+ reflection)
     q_lv = np.sign(levels) * levels * levels
     n = len(levels)
 
@@ -324,20 +321,25 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
             # crossing a level never switches its occlusion on or off (the loss stays continuous
             # in focus and aperture)
             occ = front + back * back_w
-            field = jnp.concatenate([((front + back)[:, None] * colour).sum(0),
-                                     ((front + back) * covers).sum(0)[None],
-                                     (occ * covers).sum(0)[None]])
-            blurred = blur(_downsample(field, s), kernel)
-            rgb_b, cov_b, occ_b = blurred[:3], blurred[3], blurred[4]
+            parts = [((front + back)[:, None] * colour).sum(0), (front + back).sum(0)[None],
+                     occ.sum(0)[None]]
+            if mirror:
+                wr = sum(_level_weights(q_r, (q3[0], q3[1], q3[2]), first, last))
+                parts.append(wr[None] * refl)
+            blurred = blur(_downsample(jnp.concatenate(parts), s), kernel)
+            cov_b, occ_b = blurred[3], blurred[4]
             transmit = jnp.clip(1.0 - occluders - prev_occ, 0.0, 1.0)
-            return (acc_rgb + transmit * rgb_b, acc_cov + transmit * cov_b,
+            colour_b = transmit * blurred[:3]
+            if mirror:
+                colour_b = jnp.concatenate([colour_b, blurred[5:8]])
+            return (acc_rgb + colour_b, acc_cov + transmit * cov_b,
                     occluders + prev_cov, cov_b, occ_b), None
 
         return jax.lax.scan(body, state, xs)[0]
 
     def zeros(s):
         z = jnp.zeros((hp // s, wp // s), dtype)
-        return jnp.zeros((3,) + z.shape, dtype), z, z, z, z
+        return jnp.zeros((nc,) + z.shape, dtype), z, z, z, z
 
     runs = _runs(levels, factors, kernels)
     s_min = min(factors)
@@ -349,7 +351,7 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
         s = factors[ps[0]]
         if s != s_cur:
             up = _upsample(jnp.concatenate([state[0], jnp.stack(state[1:])]), s_cur // s)
-            state, s_cur = (up[:3],) + tuple(up[3:]), s
+            state, s_cur = (up[:nc],) + tuple(up[nc:]), s
         state = run(state, ps, s)
     acc_rgb, acc_cov, occluders, prev_cov, prev_occ = state
 
@@ -371,7 +373,11 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
         s_back, back = far[-1]
         for s, a in far[-2::-1]:  # coarsest to finest, then to full resolution
             back, s_back = a + _upsample(back, s_back // s), s
-        back = transmit * _upsample(back, s_back // s_min)
-        acc_rgb, acc_cov = acc_rgb + back[:3], acc_cov + back[3]
-    out = safe_div(acc_rgb[:, :height, :width], jnp.minimum(acc_cov[:height, :width], 1.0))
+        back = _upsample(back, s_back // s_min)
+        # the far surfaces are seen through the fine runs; the reflection (channels 3:6) is not
+        acc_rgb = acc_rgb + jnp.concatenate([transmit * back[:3], back[3:nc]])
+        acc_cov = acc_cov + transmit * back[nc]
+    out = safe_div(acc_rgb[:3, :height, :width], jnp.minimum(acc_cov[:height, :width], 1.0))
+    if mirror:
+        out = out + acc_rgb[3:6, :height, :width]
     return jnp.moveaxis(out, 0, -1)

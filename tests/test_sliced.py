@@ -154,3 +154,20 @@ def test_defocus_fn_checks_its_inputs_like_defocus():
         dofjax.defocus_fn(rgb, depth, window=2)
     with pytest.raises(ValueError, match="defocus_fn: method must be one of"):
         dofjax.defocus_fn(rgb, depth, camera(width=4, height=4), window=2, method="fast")
+
+
+def test_reflection_is_seen_through_its_own_mirror():
+    # A mirror in focus fills the frame; the reflected radiance lies at a virtual depth with
+    # c = -3 px. The mirror surface (black here) must not hide its own reflection: the result is
+    # the reflection convolved with the c = -3 kernel (before the fix the mirror's coverage
+    # occluded it and most of it was lost).
+    cam = camera()
+    refl = np.random.default_rng(4).random((N, N, 3))
+    depth = np.full((N, N), 2.0)
+    rdepth = np.full((N, N), depth_for_coc(-3.0, cam))
+    out = np.asarray(dofjax.defocus(refl, depth, cam, reflection=refl, reflection_depth=rdepth,
+                                    method="sliced", window=4))
+    k = soft_kernel(float(np.hypot(3.0, R0)))
+    ref = np.stack([scipy.signal.convolve2d(refl[..., i], k, mode="same") for i in range(3)], -1)
+    m = 6
+    np.testing.assert_allclose(out[m:-m, m:-m], ref[m:-m, m:-m], atol=1e-9)
