@@ -440,6 +440,24 @@ def _check_array(name: str, x, shape_tail: tuple[int, ...], batch: bool = False)
     return a
 
 
+def _depth_weight(depth_a: np.ndarray, mask) -> np.ndarray:
+    """Checks depth (> 0, or +inf for background) and turns `mask` (None, bool or weights >= 0,
+    shape of depth) into float64 pixel weights; clear errors naming the bad input."""
+    hw = depth_a.shape
+    if np.isnan(depth_a).any() or (depth_a <= 0).any():
+        idx = tuple(int(i) for i in np.argwhere(np.isnan(depth_a) | (depth_a <= 0))[0])
+        raise ValueError(f"depth: must be > 0 (or +inf for background), got {depth_a[idx]!r} "
+                         f"at index {idx}")
+    if mask is None:
+        return np.ones(hw)
+    weight = np.asarray(mask, dtype=np.float64)
+    if weight.shape != hw:
+        raise ValueError(f"mask: expected shape {hw}, got {weight.shape}")
+    if not np.all(np.isfinite(weight)) or (weight < 0).any():
+        raise ValueError("mask: must be finite and >= 0 (bool or weights)")
+    return weight
+
+
 def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, batch):
     """All the checks that must happen before any solver runs. Returns numpy arrays."""
     if not isinstance(camera, Camera):
@@ -479,21 +497,10 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, sta
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
             raise ValueError(f"{name}: {int(bad.sum())} non-finite value(s) (NaN or inf), "
                              f"first at index {idx}")
-    if np.isnan(depth_a).any() or (depth_a <= 0).any():
-        idx = tuple(int(i) for i in np.argwhere(np.isnan(depth_a) | (depth_a <= 0))[0])
-        raise ValueError(f"depth: must be > 0 (or +inf for background), got {depth_a[idx]!r} "
-                         f"at index {idx}")
+    weight = _depth_weight(depth_a, mask)
     finite = np.isfinite(depth_a)
-    if mask is None:
-        weight = np.ones(hw)
-    else:
-        weight = np.asarray(mask, dtype=np.float64)
-        if weight.shape != hw:
-            raise ValueError(f"mask: expected shape {hw}, got {weight.shape}")
-        if not np.all(np.isfinite(weight)) or (weight < 0).any():
-            raise ValueError("mask: must be finite and >= 0 (bool or weights)")
-        if weight.sum() <= 0:
-            raise ValueError("mask: selects no pixels")
+    if mask is not None and weight.sum() <= 0:
+        raise ValueError("mask: selects no pixels")
     if not finite[weight > 0].any():
         raise ValueError("depth: no finite depth under the mask (all background): nothing to fit")
     d0 = float(camera.focus_distance)

@@ -29,7 +29,7 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from ._camera import Camera
-from ._fit import PARAMS, DefocusModel, _reach, _validate
+from ._fit import PARAMS, DefocusModel, _depth_weight, _reach, _validate
 
 
 def _default_model(rgb, depth, camera, mask, bounds, window, max_window, defocus_options):
@@ -70,19 +70,7 @@ def _check_inputs(rgb, depth, camera, sigma, mask):
     sig = np.broadcast_to(sig[..., None] if sig.shape == hw else sig, hw + (3,))
     if not np.all(np.isfinite(sig)) or not np.all(sig > 0):
         raise ValueError(f"sigma: must be finite and > 0 (image units), got min {sig.min()!r}")
-    if np.isnan(depth_a).any() or (depth_a <= 0).any():
-        idx = tuple(int(i) for i in np.argwhere(np.isnan(depth_a) | (depth_a <= 0))[0])
-        raise ValueError(f"depth: must be > 0 (or +inf for background), got {depth_a[idx]!r} "
-                         f"at index {idx}")
-    if mask is None:
-        weight = np.ones(hw)
-    else:
-        weight = np.asarray(mask, dtype=np.float64)
-        if weight.shape != hw:
-            raise ValueError(f"mask: expected shape {hw}, got {weight.shape}")
-        if not np.all(np.isfinite(weight)) or (weight < 0).any():
-            raise ValueError("mask: must be finite and >= 0 (bool or weights)")
-    return rgb_a, depth_a, sig, weight
+    return rgb_a, depth_a, sig, _depth_weight(depth_a, mask)
 
 
 @eqx.filter_jit
