@@ -321,8 +321,13 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
             # crossing a level never switches its occlusion on or off (the loss stays continuous
             # in focus and aperture)
             occ = front + back * back_w
-            parts = [((front + back)[:, None] * colour).sum(0), (front + back).sum(0)[None],
-                     occ.sum(0)[None]]
+            # sums over the few sources written out: XLA CPU miscompiled the fused
+            # broadcast-multiply-reduce over the source axis when it had 3 entries (the blue
+            # channel came out as the red one)
+            w = front + back
+            parts = [sum(w[k] * colour[k] for k in range(w.shape[0])),
+                     sum(w[k] for k in range(w.shape[0]))[None],
+                     sum(occ[k] for k in range(w.shape[0]))[None]]
             if mirror:
                 wr = sum(_level_weights(q_r, (q3[0], q3[1], q3[2]), first, last))
                 parts.append(wr[None] * refl)

@@ -171,3 +171,23 @@ def test_reflection_is_seen_through_its_own_mirror():
     ref = np.stack([scipy.signal.convolve2d(refl[..., i], k, mode="same") for i in range(3)], -1)
     m = 6
     np.testing.assert_allclose(out[m:-m, m:-m], ref[m:-m, m:-m], atol=1e-9)
+
+
+def test_hidden_layers_behind_a_sharp_surface_change_nothing():
+    # Three sources (the image and two peeled layers) behind an opaque surface in focus: the
+    # output is the surface, every channel. (On a 128x96 render of examples/quads.json with 3
+    # layers, a fused broadcast-multiply-reduce over the sources once gave blue = red; this
+    # synthetic case does not reproduce that XLA behaviour, it guards the property.)
+    cam = camera(width=64, height=48)
+    rgb = np.random.default_rng(5).random((48, 64, 3))
+    depth = np.full((48, 64), 2.0)
+    hidden = np.full((48, 64), depth_for_coc(-3.0, cam))
+    layers = dofjax.Layers(rgb=np.stack([rgb, np.full_like(rgb, 0.3), np.zeros_like(rgb)]),
+                           depth=np.stack([depth, hidden, np.full_like(depth, np.inf)]),
+                           alpha=np.stack([np.ones_like(depth), np.ones_like(depth),
+                                           np.zeros_like(depth)]))
+    for dtype in (np.float32, np.float64):
+        out = np.asarray(sliced_defocus(rgb.astype(dtype), depth.astype(dtype), cam, window=4,
+                                        layers=jax.tree_util.tree_map(
+                                            lambda a: jnp.asarray(a, dtype), layers)))
+        np.testing.assert_allclose(out, rgb, atol=1e-5)
