@@ -440,6 +440,32 @@ def _check_array(name: str, x, shape_tail: tuple[int, ...], batch: bool = False)
     return a
 
 
+def _check_finite(name: str, a: np.ndarray) -> None:
+    bad = ~np.isfinite(a)
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(f"{name}: {int(bad.sum())} non-finite value(s) (NaN or inf), "
+                         f"first at index {idx}")
+
+
+def _check_images(rgb, depth, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Sharp (H, W, 3) colour and (H, W) depth as numpy arrays, checked against each other and the
+    camera's size, colours finite (depth is checked by `_depth_weight`)."""
+    depth_a = np.asarray(depth)
+    if depth_a.ndim != 2:
+        raise ValueError(f"depth: expected shape (H, W), got {depth_a.shape}")
+    hw = depth_a.shape
+    rgb_a = np.asarray(rgb)
+    if rgb_a.shape != hw + (3,):
+        raise ValueError(f"rgb: expected shape {hw + (3,)} to match depth {hw}, got {rgb_a.shape}")
+    if (camera.height, camera.width) != hw:
+        raise ValueError(
+            f"camera: width x height {camera.width}x{camera.height} does not match the image "
+            f"{hw[1]}x{hw[0]}")
+    _check_finite("rgb", rgb_a)
+    return rgb_a, depth_a
+
+
 def _depth_weight(depth_a: np.ndarray, mask) -> np.ndarray:
     """Checks depth (> 0, or +inf for background) and turns `mask` (None, bool or weights >= 0,
     shape of depth) into float64 pixel weights; clear errors naming the bad input."""
@@ -474,29 +500,15 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, sta
             raise ValueError(f"fixed: names must be in {PARAMS}, got {name!r}")
     if len(set(fixed)) == 2:
         raise ValueError("fixed: cannot fix both focus_distance and aperture_radius")
-    depth_a = np.asarray(depth)
-    if depth_a.ndim != 2:
-        raise ValueError(f"depth: expected shape (H, W), got {depth_a.shape}")
+    rgb_a, depth_a = _check_images(rgb, depth, camera)
     hw = depth_a.shape
-    rgb_a = np.asarray(rgb)
-    if rgb_a.shape != hw + (3,):
-        raise ValueError(f"rgb: expected shape {hw + (3,)} to match depth {hw}, got {rgb_a.shape}")
     tgt = np.asarray(target)
     want = (hw + (3,)) if not batch else (tgt.shape[:1] + hw + (3,))
     if tgt.ndim != len(want) or tgt.shape != want:
         raise ValueError(
-            f"target: expected shape {('B',) if batch else ()}{hw + (3,)} to match rgb/depth, "
-            f"got {tgt.shape}")
-    if (camera.height, camera.width) != hw:
-        raise ValueError(
-            f"camera: width x height {camera.width}x{camera.height} does not match the image "
-            f"{hw[1]}x{hw[0]}")
-    for name, a in (("target", tgt), ("rgb", rgb_a)):
-        bad = ~np.isfinite(a)
-        if bad.any():
-            idx = tuple(int(i) for i in np.argwhere(bad)[0])
-            raise ValueError(f"{name}: {int(bad.sum())} non-finite value(s) (NaN or inf), "
-                             f"first at index {idx}")
+            f"target: expected shape {'(B, %d, %d, 3)' % hw if batch else hw + (3,)} to match "
+            f"rgb/depth, got {tgt.shape}")
+    _check_finite("target", tgt)
     weight = _depth_weight(depth_a, mask)
     finite = np.isfinite(depth_a)
     if mask is not None and weight.sum() <= 0:

@@ -29,7 +29,7 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from ._camera import Camera
-from ._fit import PARAMS, DefocusModel, _depth_weight, _reach, _validate
+from ._fit import PARAMS, DefocusModel, _check_images, _depth_weight, _reach, _validate
 
 
 def _default_model(rgb, depth, camera, mask, bounds, window, max_window, defocus_options):
@@ -48,21 +48,8 @@ def _default_model(rgb, depth, camera, mask, bounds, window, max_window, defocus
 def _check_inputs(rgb, depth, camera, sigma, mask):
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a dofjax.Camera, got {type(camera).__name__}")
-    depth_a = np.asarray(depth)
-    if depth_a.ndim != 2:
-        raise ValueError(f"depth: expected shape (H, W), got {depth_a.shape}")
+    rgb_a, depth_a = _check_images(rgb, depth, camera)
     hw = depth_a.shape
-    rgb_a = np.asarray(rgb)
-    if rgb_a.shape != hw + (3,):
-        raise ValueError(f"rgb: expected shape {hw + (3,)} to match depth {hw}, got {rgb_a.shape}")
-    bad = ~np.isfinite(rgb_a)
-    if bad.any():
-        idx = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise ValueError(f"rgb: {int(bad.sum())} non-finite value(s) (NaN or inf), first at "
-                         f"index {idx}")
-    if (camera.height, camera.width) != hw:
-        raise ValueError(f"camera: width x height {camera.width}x{camera.height} does not match "
-                         f"the image {hw[1]}x{hw[0]}")
     sig = np.asarray(sigma, dtype=np.float64)
     if sig.shape not in ((), hw, hw + (3,)):
         raise ValueError(f"sigma: expected a scalar, {hw} or {hw + (3,)} noise standard "
