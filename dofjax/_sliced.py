@@ -133,7 +133,7 @@ def _runs(levels, factors, kernels):
     """Consecutive levels sharing a resolution and a blur method (shifted sums for kernels of at
     most 3 x 3, FFT products above): each run becomes one `lax.scan`."""
     def key(p):
-        return factors[p]
+        return factors[p], kernels[p].shape[0] <= 3
     return [list(ps) for _, ps in itertools.groupby(range(len(levels)), key=key)]
 
 
