@@ -30,6 +30,7 @@ How the fit works:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import inspect
 import math
 from collections.abc import Callable, Sequence
@@ -274,6 +275,27 @@ def _initial_step(y, data, camera, param, spec, model, delta):
     return jnp.where(jtj > tiny, 1.0 / (1e-3 * jnp.where(jtj > tiny, jtj, 1.0)), 1.0)
 
 
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _dense_jacobian(fn, y, args):
+    """fn(y, args), differentiated through a Jacobian materialised once per evaluation.
+
+    optimistix's Gauss-Newton family linearises the residual at every step, then applies the
+    linearisation once per column of J, again for the predicted reduction and for every
+    rejected LM step: each a pass through the whole defocus model, and each a copy of it in the
+    compiled program. With 1 or 2 unknowns it is cheaper to build the (n, p) Jacobian by one
+    forward-mode pass with p tangents and make the linearisation the product `J @ dy`.
+    """
+    return fn(y, args)
+
+
+@_dense_jacobian.defjvp
+def _dense_jacobian_jvp(fn, primals, tangents):
+    y, args = primals
+    dy = tangents[0]  # args (images, camera, robust scale) are not differentiated
+    jac, r = jax.jacfwd(lambda y_: (fn(y_, args),) * 2, has_aux=True)(y)
+    return r, jac @ dy
+
+
 def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, step0=None):
     """One optimistix least-squares solve from y0 (unconstrained coordinates of the free params),
     with initial LM step size step0 (None: optimistix's default).
@@ -281,13 +303,18 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, step0=None):
     Returns (y, mean loss 2 sum(rho) / n, steps, success).
     """
 
+    def residual(y, args):
+        delta, data, camera, param = args
+        return _residual_ul(param.to_ul(y, spec.free), data, camera, model, spec.loss, delta)
+
     def fn(y, args):
-        return _residual_ul(param.to_ul(y, spec.free), data, camera, model, spec.loss, args)
+        return _dense_jacobian(residual, y, args)
 
     # float rounding of the model's pixels (~ a few eps of the image's rms), as a mean square
     eps = jnp.finfo(data.target.dtype).eps
     floor = jnp.square(8.0 * eps) * jnp.mean(jnp.square(data.target))
-    sol = optx.least_squares(fn, _make_solver(spec, rtol, atol, step0, floor), y0, args=delta,
+    sol = optx.least_squares(fn, _make_solver(spec, rtol, atol, step0, floor), y0,
+                             args=(delta, data, camera, param),
                              max_steps=spec.max_steps, throw=False)
     # The solver's state holds f at the last accepted y (= sol.value): reusing it avoids one
     # more copy of the (large) model in the compiled program.
