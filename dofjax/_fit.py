@@ -11,12 +11,20 @@ How the fit works:
   bounds are given by the user on d and A (world units) and mapped.
 - The sharp RGB-D does not depend on d or A: only the defocus model runs per solver step.
 - Multi-start: a grid of u inside the bounds (plus the user's guess), all solved in one
-  `eqx.filter_vmap` batch, on a 2^L-downsampled copy of the images (pixel scale k / 2^L, so the CoC
-  in pixels shrinks with the image). Each start first takes the aperture with the lowest loss
-  among the guess and a log-spaced grid inside the bounds (forward passes only), so a guess far
-  below the true aperture (an image that looks sharp: no information about focus) does not
-  strand the starts. The best start and the best start on the *other side* of the scene's median
-  inverse depth are then polished at full resolution.
+  `eqx.filter_vmap` batch at loose tolerance, on a 2^L-downsampled copy of the images (pixel
+  scale k / 2^L, so the CoC in pixels shrinks with the image). Each start first takes the
+  aperture with the lowest loss among the guess and a log-spaced grid inside the bounds (forward
+  passes only), so a guess far below the true aperture (an image that looks sharp: no
+  information about focus) does not strand the starts. The best start and the best start on the
+  *other side* of the scene's median inverse depth are then polished one after the other (the
+  second only if it exists), at half resolution when the multi-start level is 1/4 or smaller
+  (its minimum is biased by the downsampling, and steps there cost a quarter), then at full
+  resolution.
+- Cost per solver step: the residual's JVP is a product with a Jacobian materialised once per
+  evaluation by `jax.jacfwd` (`_dense_jacobian`), so optimistix's linearisations (one per
+  column, the predicted reduction, every rejected step) never run the model again.
+  Levenberg-Marquardt starts at damping 1e-3 max diag(J^T J) and accepts steps that change the
+  loss only at float rounding level (`_TrustRegion`).
 - Near/far ambiguity: |c| is symmetric about each depth, so a scene with (almost) one depth fits
   equally well with focus in front of or behind it. If the polished alternative's sum of squares
   exceeds the best one's by less than `ambiguity_threshold * s^2` (a likelihood-ratio test; s^2
