@@ -53,6 +53,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._camera import Camera, coc_radius
 from ._numerics import inverse_depth, safe_div
+from ._rgbd import RGBD, Layers
 
 PARAMS = ("focus_distance", "aperture_radius")
 SOLVERS = ("lm", "gauss_newton", "dogleg", "bfgs")
@@ -156,11 +157,24 @@ class _Spec:
     model_mid: Callable | None = None
 
 
+class _Extras(eqx.Module):
+    """What an `RGBD` adds to rgb/depth for the defocus: the mirror layer and peeled layers."""
+
+    reflection: Float[Array, "h w 3"] | None
+    reflection_depth: Float[Array, "h w"] | None
+    layers: Layers | None
+
+    def kwargs(self) -> dict:
+        return dict(reflection=self.reflection, reflection_depth=self.reflection_depth,
+                    layers=self.layers)
+
+
 class _Data(eqx.Module):
     target: Float[Array, "h w 3"]
     rgb: Float[Array, "h w 3"]
     depth: Float[Array, "h w"]
     weight: Float[Array, "h w"]
+    extras: _Extras | None = None
 
 
 class _TrustRegion(optx.ClassicalTrustRegion):
@@ -255,7 +269,9 @@ class _Param(eqx.Module):
 
 def _predict(ul: Array, data: _Data, camera: Camera, model: Callable) -> Array:
     cam = camera.replace(focus_distance=1.0 / ul[0], aperture_radius=jnp.exp(ul[1]))
-    return model(data.rgb, data.depth, cam)
+    if data.extras is None:
+        return model(data.rgb, data.depth, cam)
+    return model(data.rgb, data.depth, cam, **data.extras.kwargs())
 
 
 def _residual_ul(ul, data: _Data, camera: Camera, model: Callable, loss: str, delta) -> Array:
@@ -318,9 +334,16 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, step0=None):
     def fn(y, args):
         return _dense_jacobian(residual, y, args)
 
-    # float rounding of the model's pixels (~ a few eps of the image's rms), as a mean square
+    # float rounding of the model's pixels (a few eps of the image's rms), as a mean square for
+    # the trust region. The tolerance must not ask for less than rounding either: optimistix
+    # tests each coordinate against atol + rtol |y_i|, and a y_i near 0 (the middle of its
+    # bounds) then needs |dy_i| < atol: float32 steps jitter by ~3e-8 at the minimum, so with
+    # atol 1e-10 a noisy target ran to max_steps. y has scale 1, hence 16 eps; and the
+    # per-residual rounding level.
     eps = jnp.finfo(data.target.dtype).eps
     floor = jnp.square(8.0 * eps) * jnp.mean(jnp.square(data.target))
+    atol = jnp.maximum(atol, jnp.maximum(16.0 * eps,
+                                         jnp.sqrt(floor / (3.0 * jnp.sum(data.weight)))))
     sol = optx.least_squares(fn, _make_solver(spec, rtol, atol, step0, floor), y0,
                              args=(delta, data, camera, param),
                              max_steps=spec.max_steps, throw=False)
@@ -554,17 +577,19 @@ class DefocusModel:
     ratio: float = 1.0
     method: str = "sliced"
 
-    def __call__(self, rgb, depth, camera):
+    def __call__(self, rgb, depth, camera, reflection=None, reflection_depth=None, layers=None):
         from ._defocus import defocus
 
         return defocus(rgb, depth, camera, window=self.window, shape=self.shape,
                        blades=self.blades, rotation=self.rotation, ratio=self.ratio,
-                       method=self.method)
+                       method=self.method, reflection=reflection,
+                       reflection_depth=reflection_depth, layers=layers)
 
 
-def _reach(depth: np.ndarray, weight: np.ndarray, k: float, u_bounds, a_hi: float) -> float:
-    """Largest |CoC| (px) any (u, A) inside the bounds can give on this image."""
-    inv = 1.0 / depth[weight > 0]
+def _reach(depths: np.ndarray, k: float, u_bounds, a_hi: float) -> float:
+    """Largest |CoC| (px) any (u, A) inside the bounds can give to these depths (the image's
+    under the mask: see `_depths_seen`)."""
+    inv = 1.0 / depths
     inv = np.where(np.isfinite(inv), inv, 0.0)
     du = max(abs(u_bounds[0] - inv.min()), abs(u_bounds[1] - inv.max()),
              abs(u_bounds[0] - inv.max()), abs(u_bounds[1] - inv.min()))
@@ -707,13 +732,38 @@ def _pool(x: Array, f: int, spatial_axis: int) -> Array:
     return x.reshape(shape).mean(axis=(spatial_axis + 1, spatial_axis + 3))
 
 
+def _pool_depth(depth: Array, f: int, weight: Array | None = None) -> Array:
+    """Box-average (H, W) or (K, H, W) depths as inverse depth (the CoC is affine in 1/z, so the
+    average inverse depth keeps the average CoC), optionally weighted (by coverage)."""
+    axis = depth.ndim - 2
+    inv = inverse_depth(depth)
+    if weight is None:
+        inv_c = _pool(inv, f, axis)
+    else:
+        inv_c = safe_div(_pool(inv * weight, f, axis), _pool(weight, f, axis))
+    return jnp.where(inv_c > 0, 1.0 / jnp.where(inv_c > 0, inv_c, 1.0), jnp.inf)
+
+
+def _coarse_extras(extras: _Extras | None, f: int) -> _Extras | None:
+    if extras is None:
+        return None
+    refl = refl_z = layers = None
+    if extras.reflection is not None:
+        refl = _pool(extras.reflection, f, 0)
+        refl_z = _pool_depth(extras.reflection_depth, f)
+    if extras.layers is not None:
+        lay = extras.layers
+        alpha_c = _pool(lay.alpha, f, 1)
+        # premultiplied colour, coverage-weighted inverse depth
+        rgb_c = safe_div(_pool(lay.rgb * lay.alpha[..., None], f, 1), alpha_c[..., None])
+        layers = Layers(rgb=rgb_c, depth=_pool_depth(lay.depth, f, lay.alpha), alpha=alpha_c)
+    return _Extras(reflection=refl, reflection_depth=refl_z, layers=layers)
+
+
 def _coarse_data(data: _Data, f: int) -> _Data:
-    inv = inverse_depth(data.depth)
-    inv_c = _pool(inv, f, 0)
-    # CoC is affine in 1/z, so the average inverse depth keeps the average CoC.
-    depth_c = jnp.where(inv_c > 0, 1.0 / jnp.where(inv_c > 0, inv_c, 1.0), jnp.inf)
-    return _Data(target=_pool(data.target, f, 0), rgb=_pool(data.rgb, f, 0), depth=depth_c,
-                 weight=_pool(data.weight, f, 0))
+    return _Data(target=_pool(data.target, f, 0), rgb=_pool(data.rgb, f, 0),
+                 depth=_pool_depth(data.depth, f), weight=_pool(data.weight, f, 0),
+                 extras=_coarse_extras(data.extras, f))
 
 
 def _coarse_camera(camera: Camera, f: int) -> Camera:
@@ -736,9 +786,60 @@ def _levels(hw: tuple[int, int], coarse_size: int | None) -> int:
     return f
 
 
+def _unpack(name: str, rgb, depth, camera, model):
+    """`(rgb, depth, camera)` or `(rgbd, camera)` -> rgb, depth, camera and the RGBD's extras
+    (mirror layer, peeled layers; None for plain arrays), checked on the host."""
+    if not isinstance(rgb, RGBD):
+        if camera is None:
+            raise TypeError(f"{name}: call as {name}(target, rgb, depth, camera) or "
+                            f"{name}(target, rgbd, camera)")
+        return rgb, depth, camera, None
+    if camera is not None:
+        raise TypeError(f"{name}(target, rgbd, camera): pass the camera as the third argument "
+                        "only")
+    rgbd, camera = rgb, depth
+    if rgbd.reflection is None and rgbd.layers is None:
+        return rgbd.rgb, rgbd.depth, camera, None
+    if model is not None:
+        raise ValueError(f"{name}: a custom model takes (rgb, depth, camera) only, so the RGBD's "
+                         "reflection / peeled layers cannot reach it; pass rgbd.rgb, rgbd.depth")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a dofjax.Camera, got {type(camera).__name__}")
+    from ._defocus import _validate as _validate_rgbd
+
+    dtype = jnp.result_type(float)
+
+    def arr(x):
+        return None if x is None else jnp.asarray(x, dtype)
+
+    lay = rgbd.layers
+    extras = _Extras(reflection=arr(rgbd.reflection), reflection_depth=arr(rgbd.reflection_depth),
+                     layers=None if lay is None else Layers(rgb=arr(lay.rgb), depth=arr(lay.depth),
+                                                            alpha=arr(lay.alpha)))
+    try:  # the defocus' own checks of the mirror layer and the peeled layers
+        _validate_rgbd(arr(rgbd.rgb), arr(rgbd.depth), camera, extras.reflection,
+                       extras.reflection_depth, extras.layers)
+    except ValueError as e:
+        raise ValueError(str(e).replace("defocus:", f"{name}:", 1)) from None
+    return rgbd.rgb, rgbd.depth, camera, extras
+
+
+def _depths_seen(depth_a: np.ndarray, weight: np.ndarray, extras: _Extras | None) -> np.ndarray:
+    """Every depth the defocus sees under the mask (surfaces, peeled layers, virtual mirror
+    depths), flattened: what decides the largest CoC."""
+    out = [depth_a[weight > 0]]
+    if extras is not None and extras.layers is not None:
+        a = np.asarray(extras.layers.alpha)
+        out.append(np.asarray(extras.layers.depth)[(a > 0) & (weight > 0)[None]])
+    if extras is not None and extras.reflection_depth is not None:
+        out.append(np.asarray(extras.reflection_depth)[weight > 0])
+    return np.concatenate(out)
+
+
 def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, batch,
              rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds, window,
-             max_window, defocus_options, start_steps):
+             max_window, defocus_options, start_steps, name="fit_focus"):
+    rgb, depth, camera, extras = _unpack(name, rgb, depth, camera, model)
     tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds = _validate(
         target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, batch)
     dtype = jnp.result_type(float)
@@ -786,7 +887,8 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         delta0 = jnp.asarray(np.inf, dtype)  # plain least squares (all robust weights 1)
     if model is None:
         win = window if window is not None else min(
-            _reach(depth_a, weight, float(camera.pixel_scale), (u_lo, u_hi), a_bounds[1]),
+            _reach(_depths_seen(depth_a, weight, extras), float(camera.pixel_scale), (u_lo, u_hi),
+                   a_bounds[1]),
             max_window)
         model = DefocusModel(window=float(max(win, 1.0)), **(defocus_options or {}))
         model_c = dataclasses.replace(model, window=max(model.window / f, 1.0))
@@ -795,14 +897,16 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         model_c = model_m = model
     spec = _Spec(
         model=model, model_coarse=model_c, solver=solver, loss=loss,
-        auto_scale=(loss != "l2" and loss_scale is None), free=free, rtol=float(rtol),
+        auto_scale=(loss != "l2" and loss_scale is None), free=free,
+        rtol=float(rtol if rtol is not None else (1e-8 if dtype == jnp.float64 else 1e-5)),
         atol=float(atol), max_steps=int(max_steps), coarse=f > 1, robust_rounds=robust_rounds,
         start_steps=int(start_steps), mid_factor=f_mid, model_mid=model_m)
     data = _Data(target=jnp.asarray(tgt, dtype), rgb=jnp.asarray(rgb_a, dtype),
-                 depth=jnp.asarray(depth_a, dtype), weight=jnp.asarray(weight, dtype))
+                 depth=jnp.asarray(depth_a, dtype), weight=jnp.asarray(weight, dtype),
+                 extras=extras)
     cameras = (_coarse_camera(camera, f) if f > 1 else camera,
                _coarse_camera(camera, f_mid) if f_mid > 1 else None)
-    return data, cameras, param, y_starts, u_scene, delta0, spec, f
+    return data, camera, cameras, param, y_starts, u_scene, delta0, spec, f
 
 
 def _levels_data(data: _Data, spec: _Spec, f: int):
@@ -889,7 +993,10 @@ def _result(raw: dict, camera: Camera, fixed_names, max_condition, threshold, sp
         steps=raw["steps"], converged=raw["converged"],
         identifiable=np.array([f[0] for f in flags]).reshape(d.shape),
         ambiguous=np.array([f[1] for f in flags]).reshape(d.shape),
-        alternative_focus_distance=np.where(has_alt, 1.0 / ul_alt[..., 0], nan),
+        # (u = 0 is focus at infinity, which the bounds may allow)
+        alternative_focus_distance=np.where(
+            has_alt, np.divide(1.0, ul_alt[..., 0], out=np.full(d.shape, np.inf),
+                               where=ul_alt[..., 0] != 0), nan),
         alternative_aperture_radius=np.where(has_alt, np.exp(ul_alt[..., 1]), nan),
         alternative_loss=np.where(has_alt, raw["sse_alt"] / n, nan),
         condition=raw["condition"], max_coc=raw["max_coc"],
@@ -904,9 +1011,9 @@ def _result(raw: dict, camera: Camera, fixed_names, max_condition, threshold, sp
 
 def fit_focus(
     target: ArrayLike,
-    rgb: ArrayLike,
-    depth: ArrayLike,
-    camera: Camera,
+    rgb: ArrayLike | RGBD,
+    depth: ArrayLike | Camera,
+    camera: Camera | None = None,
     *,
     bounds: dict[str, tuple[float, float]] | None = None,
     solver: str = "lm",
@@ -915,7 +1022,7 @@ def fit_focus(
     mask: ArrayLike | None = None,
     fixed: Sequence[str] | str = (),
     starts: int = 8,
-    rtol: float = 1e-8,
+    rtol: float | None = None,
     atol: float = 1e-10,
     max_steps: int = 100,
     start_steps: int = 30,
@@ -934,6 +1041,9 @@ def fit_focus(
         target: (H, W, 3) the blurred image, linear colour.
         rgb, depth: (H, W, 3) sharp linear colour and (H, W) z-depth (world units, +inf for the
             background) it was made from. They do not depend on the parameters: computed once.
+            Or call `fit_focus(target, rgbd, camera)` with an `RGBD` from `render` or
+            `read_rgbd`: its mirror layer (blurred at its virtual depth) and peeled layers (what
+            a blurred foreground uncovers) then enter the model too, as in `defocus(rgbd, ...)`.
         camera: the initial guess for focus_distance and aperture_radius, and everything that is
             not fitted (fov, resolution). Its width x height must equal the image's.
         bounds: {"focus_distance": (lo, hi), "aperture_radius": (lo, hi)}, world units; either
@@ -951,8 +1061,13 @@ def fit_focus(
             u = 1/d inside the bounds), solved as one vmapped batch. Each start's aperture is
             the best (lowest multi-start-level loss) of the guess and 6 log-spaced values inside
             the aperture bounds.
-        rtol, atol: optimistix tolerances for the final (full-resolution) solve, in the
-            solver's internal coordinates (logit-mapped u and log A) and the mean squared residual.
+        rtol, atol: optimistix tolerances for the final (full-resolution) solve: a step ends it
+            when it moves the solver's internal coordinates (sine-mapped u and log A) by less
+            than atol + rtol |y| and every (mean-scaled) residual by less than atol + rtol |r|
+            (max norms). rtol None: 1e-8 in float64, 1e-5 in float32. atol is raised to the
+            float rounding level (16 eps for the coordinates, whose scale is 1, and the
+            residuals' rounding): float32 cannot resolve smaller changes, and with 1e-8 / 1e-10
+            noisy float32 targets never converged (the fit ran to max_steps).
         max_steps: per polish solve; start_steps: per multi-start solve (at tolerance 1e-4).
         coarse_size: the multi-start runs on the image box-downsampled by 2^L, the largest factor
             keeping min(H, W) / 2^L >= coarse_size (None: always full resolution); the best
@@ -981,24 +1096,28 @@ def fit_focus(
     prep = _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, False,
                     rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds,
                     window, max_window, defocus_options, start_steps)
-    data, cameras, param, y_starts, u_scene, delta0, spec, f = prep
+    data, camera, cameras, param, y_starts, u_scene, delta0, spec, f = prep
     raw = _fit_jit(data, camera, cameras, param, y_starts, u_scene, delta0, spec, f)
     fixed_names = tuple(PARAMS[i] for i in range(2) if i not in spec.free)
     return _result(raw, camera, fixed_names, max_condition, ambiguity_threshold, spec, False)
 
 
 def fit_focus_scene(target: ArrayLike, scene, camera: Camera, *, spp: int = 1,
-                    **kwargs) -> FitResult:
+                    layers: int | None = None, **kwargs) -> FitResult:
     """`fit_focus` from a dofjax Scene: render the sharp RGB-D once (pinhole), then fit.
+
+    The render's mirror layer (scenes with mirrors) and its peeled layers (`layers` > 1) enter
+    the model, so reflections are blurred at their virtual depth as the lens blurs them.
 
     Args:
         target: (H, W, 3) blurred image; camera: initial guess and the pose/fov to render with;
-        spp: samples per pixel of the sharp render; kwargs: as for `fit_focus`.
+        spp: samples per pixel of the sharp render; layers: peeled layers to render (None: the
+        visible surface only); kwargs: as for `fit_focus`.
     """
     from ._raycast import render
 
-    rgbd = render(scene, camera, spp=spp)
-    return fit_focus(target, rgbd.rgb, rgbd.depth, camera, **kwargs)
+    rgbd = render(scene, camera, spp=spp, layers=layers)
+    return fit_focus(target, rgbd, camera, **kwargs)
 
 
 @eqx.filter_jit
@@ -1021,9 +1140,9 @@ def _batch_jit(targets, data, camera, cameras, param, y_starts, u_scene, delta0,
 
 def fit_focus_batch(
     targets: ArrayLike,
-    rgb: ArrayLike,
-    depth: ArrayLike,
-    camera: Camera,
+    rgb: ArrayLike | RGBD,
+    depth: ArrayLike | Camera,
+    camera: Camera | None = None,
     *,
     devices: Sequence[Any] | None = None,
     **kwargs,
@@ -1056,8 +1175,9 @@ def fit_focus_batch(
                     opts["solver"], opts["loss"], opts["starts"], True, opts["rtol"],
                     opts["atol"], opts["max_steps"], opts["model"], opts["coarse_size"],
                     opts["loss_scale"], opts["robust_rounds"], opts["window"],
-                    opts["max_window"], opts["defocus_options"], opts["start_steps"])
-    data, cameras, param, y_starts, u_scene, delta0, spec, f = prep
+                    opts["max_window"], opts["defocus_options"], opts["start_steps"],
+                    name="fit_focus_batch")
+    data, camera, cameras, param, y_starts, u_scene, delta0, spec, f = prep
     devices = list(jax.devices() if devices is None else devices)
     mesh = Mesh(np.array(devices), ("batch",))
     tg = data.target

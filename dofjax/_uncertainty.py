@@ -40,7 +40,7 @@ def _default_model(rgb, depth, camera, mask, bounds, window, max_window, defocus
         _, _, depth_a, weight, _, d_bounds, a_bounds = _validate(
             rgb, rgb, depth, camera, mask, bounds, (), "lm", "l2", 1, False)
         u_bounds = (1.0 / d_bounds[1], 1.0 / d_bounds[0])
-        window = min(_reach(depth_a, weight, float(camera.pixel_scale), u_bounds, a_bounds[1]),
+        window = min(_reach(depth_a[weight > 0], float(camera.pixel_scale), u_bounds, a_bounds[1]),
                      max_window)
     return DefocusModel(window=float(max(window, 1.0)), **(defocus_options or {}))
 

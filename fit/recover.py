@@ -3,8 +3,10 @@
     python -m fit.recover TARGET.exr --sharp SHARP.exr [--out PREFIX]
     python -m fit.recover TARGET.exr --scene SCENE.json [--out PREFIX]
 
-The sharp RGB-D comes from an EXR with R, G, B and Z (`--sharp`), or is rendered from a scene
-file (`--scene`; its camera section supplies pose and fov). The initial guess is the file's
+The sharp RGB-D comes from an EXR with R, G, B and Z (`--sharp`; its mirror layer and peeled
+layers, as `dofjax.write_rgbd` and data_gen write them, enter the fit), or is rendered from a
+scene file (`--scene`; its camera section supplies pose and fov; mirrors are blurred at their
+virtual depth). The initial guess is the file's
 camera (or --focus/--aperture). Prints true (if the target's `dofjax:` metadata has it) vs
 recovered with standard errors, and writes PREFIX.json (the FitResult) and PREFIX.png
 (target | fitted | 4x |residual|).
@@ -61,9 +63,11 @@ def main(argv=None) -> None:
 
     target, _, tmeta = dofjax.read_exr(a.target)
     if a.sharp:
-        rgb, depth, smeta = dofjax.read_exr(a.sharp)
-        if depth is None:
-            raise SystemExit(f"recover: {a.sharp} has no Z channel")
+        try:  # the mirror layer and peeled layers, when the file has them, enter the fit
+            sharp, smeta = dofjax.read_rgbd(a.sharp)
+        except ValueError as e:
+            raise SystemExit(f"recover: {e}") from None
+        depth = sharp.depth
         meta = {**smeta}
         if a.fov is not None:
             meta["fov"] = a.fov
@@ -78,14 +82,13 @@ def main(argv=None) -> None:
         if cam0 is None:
             raise SystemExit(f"recover: {a.scene} has no camera section")
         camera = _camera({}, target.shape[:2], cam0, a.focus, a.aperture)
-        sharp = dofjax.render(scene, camera)
-        rgb, depth = np.asarray(sharp.rgb), np.asarray(sharp.depth)
+        sharp = dofjax.render(scene, camera)  # with its mirror layer, if the scene has mirrors
     bounds = {}
     if a.focus_bounds:
         bounds["focus_distance"] = tuple(a.focus_bounds)
     if a.aperture_bounds:
         bounds["aperture_radius"] = tuple(a.aperture_bounds)
-    result = dofjax.fit_focus(target, rgb, depth, camera, bounds=bounds or None, solver=a.solver,
+    result = dofjax.fit_focus(target, sharp, camera, bounds=bounds or None, solver=a.solver,
                               loss=a.loss, starts=a.starts, window=a.window)
     truth = {k: tmeta.get(k) for k in ("focus_distance", "aperture_radius")}
     if tmeta.get("role") == "sharp":
@@ -97,7 +100,8 @@ def main(argv=None) -> None:
     prefix = a.out or (os.path.splitext(a.target)[0] + ".fit")
     with open(prefix + ".json", "w") as f:
         json.dump({"target": a.target, "truth": truth, "result": result.as_dict()}, f, indent=1)
-    fitted = dofjax.defocus(rgb, depth, result.camera, window=result_window(a.window, result),
+    # window None: from the image's own CoCs at the fit, mirror and peeled layers included
+    fitted = dofjax.defocus(sharp, result.camera, window=a.window,
                             method="sliced")  # the model fit_focus fitted
     strip = np.concatenate([np.asarray(target), np.asarray(fitted),
                             4.0 * np.abs(np.asarray(fitted) - np.asarray(target))], axis=1)
