@@ -80,7 +80,8 @@ class FitResult(eqx.Module):
         loss: mean of the per-value loss rho(r) over the unmasked pixel values (for "l2", the mean
             squared residual).
         noise_sigma: residual standard deviation s = sqrt(SSE / (n - p)), image units.
-        steps: solver steps (the chosen start's multi-start steps plus its polish steps).
+        steps: solver steps (the chosen start's multi-start steps plus its halfway and
+            full-resolution polish steps).
         converged: the final solver run reported success.
         identifiable: False when the image cannot determine the fitted parameters (see `message`).
         ambiguous: a minimum on the other side of the scene depth fits (statistically) as well.
