@@ -16,15 +16,13 @@ How the fit works:
   aperture with the lowest loss among the guess and a log-spaced grid inside the bounds (forward
   passes only), so a guess far below the true aperture (an image that looks sharp: no
   information about focus) does not strand the starts. The best start and the best start on the
-  *other side* of the scene's median inverse depth are then polished one after the other (the
-  second only if it exists), at half resolution when the multi-start level is 1/4 or smaller
-  (its minimum is biased by the downsampling, and steps there cost a quarter), then at full
-  resolution.
+  *other side* of the scene's median inverse depth are then polished at full resolution, one
+  after the other (the second only if it exists).
 - Cost per solver step: the residual's JVP is a product with a Jacobian materialised once per
   evaluation by `jax.jacfwd` (`_dense_jacobian`), so optimistix's linearisations (one per
   column, the predicted reduction, every rejected step) never run the model again.
-  Levenberg-Marquardt starts at damping 1e-3 max diag(J^T J) and accepts steps that change the
-  loss only at float rounding level (`_TrustRegion`).
+  Levenberg-Marquardt accepts steps that change the loss only at float rounding level
+  (`_TrustRegion`).
 - Near/far ambiguity: |c| is symmetric about each depth, so a scene with (almost) one depth fits
   equally well with focus in front of or behind it. If the polished alternative's sum of squares
   exceeds the best one's by less than `ambiguity_threshold * s^2` (a likelihood-ratio test; s^2
@@ -80,8 +78,7 @@ class FitResult(eqx.Module):
         loss: mean of the per-value loss rho(r) over the unmasked pixel values (for "l2", the mean
             squared residual).
         noise_sigma: residual standard deviation s = sqrt(SSE / (n - p)), image units.
-        steps: solver steps (the chosen start's multi-start steps plus its halfway and
-            full-resolution polish steps).
+        steps: solver steps (the chosen start's multi-start steps plus its polish steps).
         converged: the final solver run reported success.
         identifiable: False when the image cannot determine the fitted parameters (see `message`).
         ambiguous: a minimum on the other side of the scene depth fits (statistically) as well.
@@ -154,8 +151,6 @@ class _Spec:
     coarse: bool  # the multi-start runs on a downsampled copy
     start_steps: int  # max steps per multi-start solve
     robust_rounds: int
-    mid_factor: int = 1  # > 1: the pair is polished at 1/mid_factor of the resolution first
-    model_mid: Callable | None = None
 
 
 class _Extras(eqx.Module):
@@ -179,25 +174,21 @@ class _Data(eqx.Module):
 
 
 class _TrustRegion(optx.ClassicalTrustRegion):
-    """optimistix's classical trust region, with a given initial step size and a rounding floor.
+    """optimistix's classical trust region, with a rounding floor.
 
-    - optimistix starts Levenberg-Marquardt at damping 1 (step size 1). Our residuals are
-      scaled to a mean, so J^T J is ~1e-3 or less and damping 1 makes the first steps ~1000
-      times too short: a start next to the minimum took 19 steps instead of 6. Like More (1978)
-      we start at damping 1e-3 max diag(J^T J) (`initial_step_size` = its inverse).
-    - At the minimum of a noise-free target the loss is at float rounding level and a step can
-      raise it by rounding alone; LM rejected such steps five times in a row (shrinking its step
-      each time) before one was accepted and the solve could stop. A step that raises the loss
-      by no more than `floor` (mean squared residual) or 1e-6 of it is accepted.
+    At the minimum of a noise-free target the loss is at float rounding level and a step can
+    raise it by rounding alone; LM rejected such steps five times in a row (shrinking its step
+    each time) before one was accepted and the solve could stop. A step that raises the loss by
+    no more than `floor` (mean squared residual) or 1e-6 of it is accepted.
+
+    The initial step size (1 / damping) stays optimistix's 1. Starting at More's 1e-3 max
+    diag(J^T J) instead halved the steps near a minimum, but Gauss-Newton-sized first steps
+    from the multi-start level's (downsampling-biased) minimum jumped into other basins at
+    256x256 (86 % of 91 noise-free cases within 1e-3): the small first steps of damping 1 walk
+    along the valley instead.
     """
 
-    initial_step_size: Array = eqx.field(default_factory=lambda: jnp.array(1.0))
     floor: Array = eqx.field(default_factory=lambda: jnp.array(0.0))
-
-    def init(self, y, f_info_struct):
-        state = super().init(y, f_info_struct)
-        return eqx.tree_at(lambda s: s.step_size, state,
-                           jnp.asarray(self.initial_step_size, state.step_size.dtype))
 
     def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
         step_size, accept, result, state = super().step(
@@ -208,13 +199,10 @@ class _TrustRegion(optx.ClassicalTrustRegion):
         return step_size, accept | (level & ~first_step), result, state
 
 
-def _make_solver(spec: _Spec, rtol: float, atol: float, step0=None, floor=0.0):
+def _make_solver(spec: _Spec, rtol: float, atol: float, floor=0.0):
     if spec.solver == "lm":
         lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
-        if step0 is None:
-            return lm
-        return eqx.tree_at(lambda s: s.search, lm, _TrustRegion(
-            initial_step_size=step0, floor=floor))
+        return eqx.tree_at(lambda s: s.search, lm, _TrustRegion(floor=floor))
     if spec.solver == "gauss_newton":
         return optx.GaussNewton(rtol=rtol, atol=atol)
     if spec.solver == "dogleg":
@@ -288,18 +276,6 @@ def _residual_ul(ul, data: _Data, camera: Camera, model: Callable, loss: str, de
     return (r / jnp.sqrt(n)).reshape(-1)
 
 
-def _initial_step(y, data, camera, param, spec, model, delta):
-    """1 / (1e-3 max diag(J^T J)) at y: the initial LM step size (see `_TrustRegion`)."""
-
-    def fn(y):
-        return _residual_ul(param.to_ul(y, spec.free), data, camera, model, spec.loss, delta)
-
-    jac = jax.jacfwd(fn)(y)
-    jtj = jnp.max(jnp.sum(jac * jac, axis=0))
-    tiny = jnp.finfo(jac.dtype).tiny
-    return jnp.where(jtj > tiny, 1.0 / (1e-3 * jnp.where(jtj > tiny, jtj, 1.0)), 1.0)
-
-
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _dense_jacobian(fn, y, args):
     """fn(y, args), differentiated through a Jacobian materialised once per evaluation.
@@ -321,9 +297,8 @@ def _dense_jacobian_jvp(fn, primals, tangents):
     return r, jac @ dy
 
 
-def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, step0=None):
-    """One optimistix least-squares solve from y0 (unconstrained coordinates of the free params),
-    with initial LM step size step0 (None: optimistix's default).
+def _solve(y0, data, camera, param, spec, model, delta, rtol, atol):
+    """One optimistix least-squares solve from y0 (unconstrained coordinates of the free params).
 
     Returns (y, mean loss 2 sum(rho) / n, steps, success).
     """
@@ -335,17 +310,10 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, step0=None):
     def fn(y, args):
         return _dense_jacobian(residual, y, args)
 
-    # float rounding of the model's pixels (a few eps of the image's rms), as a mean square for
-    # the trust region. The tolerance must not ask for less than rounding either: optimistix
-    # tests each coordinate against atol + rtol |y_i|, and a y_i near 0 (the middle of its
-    # bounds) then needs |dy_i| < atol: float32 steps jitter by ~3e-8 at the minimum, so with
-    # atol 1e-10 a noisy target ran to max_steps. y has scale 1, hence 16 eps; and the
-    # per-residual rounding level.
+    # float rounding of the model's pixels (a few eps of the image's rms), as a mean square
     eps = jnp.finfo(data.target.dtype).eps
     floor = jnp.square(8.0 * eps) * jnp.mean(jnp.square(data.target))
-    atol = jnp.maximum(atol, jnp.maximum(16.0 * eps,
-                                         jnp.sqrt(floor / (3.0 * jnp.sum(data.weight)))))
-    sol = optx.least_squares(fn, _make_solver(spec, rtol, atol, step0, floor), y0,
+    sol = optx.least_squares(fn, _make_solver(spec, rtol, atol, floor), y0,
                              args=(delta, data, camera, param),
                              max_steps=spec.max_steps, throw=False)
     # The solver's state holds f at the last accepted y (= sol.value): reusing it avoids one
@@ -358,14 +326,10 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, step0=None):
     return sol.value, loss, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
 
 
-def _solve_many(y0s, data, camera, param, spec, model, delta, rtol, atol, step0s=None):
-    if step0s is None:
-        return eqx.filter_vmap(
-            lambda y0: _solve(y0, data, camera, param, spec, model, delta, rtol, atol)
-        )(y0s)
+def _solve_many(y0s, data, camera, param, spec, model, delta, rtol, atol):
     return eqx.filter_vmap(
-        lambda y0, s0: _solve(y0, data, camera, param, spec, model, delta, rtol, atol, s0)
-    )(y0s, step0s)
+        lambda y0: _solve(y0, data, camera, param, spec, model, delta, rtol, atol)
+    )(y0s)
 
 
 def _mad_scale(data, camera, ul, model, loss) -> Array:
@@ -416,7 +380,7 @@ def _uncertainty(ul, data, camera, spec, model, delta):
     return cov, s2, condition, r
 
 
-def _polish(state, has_alt, step0s, data, camera, param, spec, model, delta0, rtol, atol,
+def _polish(state, has_alt, data, camera, param, spec, model, delta0, rtol, atol,
             rounds: int):
     """Polish the (best, alternative) pair on one level; returns (ys, losses, steps, ok, delta).
 
@@ -432,8 +396,7 @@ def _polish(state, has_alt, step0s, data, camera, param, spec, model, delta0, rt
         pair, pair_loss, pair_steps, pair_ok, delta = carry
 
         def solve(_):
-            s0 = None if step0s is None else step0s[i]
-            return _solve(pair[i], data, camera, param, spec, model, delta, rtol, atol, s0)
+            return _solve(pair[i], data, camera, param, spec, model, delta, rtol, atol)
 
         def skip(_):
             return pair[i], pair_loss[i], jnp.zeros_like(pair_steps[i]), pair_ok[i]
@@ -469,16 +432,13 @@ def _pick(u_end, losses, u_scene):
     return best, jnp.where(jnp.any(other), alt, best), jnp.any(other)
 
 
-def _fit_core(data, coarse, camera, cameras, param, y_starts, u_scene, delta0, spec: _Spec):
+def _fit_core(data, coarse, camera, camera_c, param, y_starts, u_scene, delta0, spec: _Spec):
     """Traceable body of one fit (vmapped over targets by fit_focus_batch).
 
     delta0 is the robust scale for the first stage: +inf (plain least squares; every robust
     weight is 1 there) for "l2" or an automatic scale, the user's `loss_scale` otherwise.
     """
     rtol, atol = spec.rtol, spec.atol
-    coarse, mid = coarse
-    camera_c, camera_m = cameras
-    mid = (mid, camera_m)
     if spec.coarse:
         src, cam1, model1 = coarse, camera_c, spec.model_coarse
     else:
@@ -508,31 +468,14 @@ def _fit_core(data, coarse, camera, cameras, param, y_starts, u_scene, delta0, s
         y_starts = y_starts.at[:, ai].set(jax.lax.map(best_aperture, y_starts))
     # Every start is solved (vmapped, loose tolerance): picking the best grid points and solving
     # only those lost 2 of 12 noise-free cases at 64x64 to wrong basins (0 of 12 this way).
-    # The damping scale of each comes from its start (cheap at this level) and serves every
-    # level after it: the residuals are scaled to a mean, so J^T J hardly depends on the
-    # resolution.
-    step0s = None
-    if spec.solver == "lm":
-        step0s = jax.vmap(lambda y: _initial_step(y, src, cam1, param, spec, model1,
-                                                  delta0))(y_starts)
-    ys, loss, steps, ok = _solve_many(y_starts, src, cam1, param, spec1, model1, delta0, r1, a1,
-                                      step0s)
+    ys, loss, steps, ok = _solve_many(y_starts, src, cam1, param, spec1, model1, delta0, r1, a1)
     ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(ys)
     best, alt, has_alt = _pick(ul_end[:, 0], loss, u_scene)
     idx = jnp.stack([best, alt])
     pair, pair_loss, pair_steps, pair_ok = ys[idx], loss[idx], steps[idx], ok[idx]
-    step0s = None if step0s is None else step0s[idx]
-    if spec.mid_factor > 1:
-        # halfway: the multi-start level's minimum is biased by its downsampling, and steps
-        # here cost a quarter of the full resolution's
-        data_m, cam_m = mid
-        spec_m = dataclasses.replace(spec, max_steps=min(spec.max_steps, spec.start_steps))
-        pair, pair_loss, pair_steps, pair_ok, _ = _polish(
-            (pair, pair_loss, pair_steps, pair_ok), has_alt, step0s, data_m, cam_m, param,
-            spec_m, spec.model_mid, delta0, r1, a1, rounds=1)
     rounds = 1 + (spec.robust_rounds if spec.auto_scale else 0)
     pair, pair_loss, pair_steps, pair_ok, delta = _polish(
-        (pair, pair_loss, pair_steps, pair_ok), has_alt, step0s, data, camera, param, spec,
+        (pair, pair_loss, pair_steps, pair_ok), has_alt, data, camera, param, spec,
         spec.model, delta0, rtol, atol, rounds)
     # The polish can swap the order of the two minima.
     order = jnp.where(pair_loss[1] < pair_loss[0], jnp.array([1, 0]), jnp.array([0, 1]))
@@ -879,7 +822,6 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
     inv = 1.0 / depth_a[np.isfinite(depth_a) & (weight > 0)]
     u_scene = jnp.asarray(float(np.median(inv)), dtype)
     f = _levels(depth_a.shape, coarse_size)
-    f_mid = 2 if f >= 4 else 1
     if loss != "l2" and loss_scale is not None:
         if not float(loss_scale) > 0:
             raise ValueError(f"loss_scale: must be > 0, got {loss_scale!r}")
@@ -893,33 +835,25 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
             max_window)
         model = DefocusModel(window=float(max(win, 1.0)), **(defocus_options or {}))
         model_c = dataclasses.replace(model, window=max(model.window / f, 1.0))
-        model_m = dataclasses.replace(model, window=max(model.window / f_mid, 1.0))
     else:
-        model_c = model_m = model
+        model_c = model
     spec = _Spec(
         model=model, model_coarse=model_c, solver=solver, loss=loss,
         auto_scale=(loss != "l2" and loss_scale is None), free=free,
-        rtol=float(rtol if rtol is not None else (1e-8 if dtype == jnp.float64 else 1e-5)),
+        rtol=float(rtol),
         atol=float(atol), max_steps=int(max_steps), coarse=f > 1, robust_rounds=robust_rounds,
-        start_steps=int(start_steps), mid_factor=f_mid, model_mid=model_m)
+        start_steps=int(start_steps))
     data = _Data(target=jnp.asarray(tgt, dtype), rgb=jnp.asarray(rgb_a, dtype),
                  depth=jnp.asarray(depth_a, dtype), weight=jnp.asarray(weight, dtype),
                  extras=extras)
-    cameras = (_coarse_camera(camera, f) if f > 1 else camera,
-               _coarse_camera(camera, f_mid) if f_mid > 1 else None)
-    return data, camera, cameras, param, y_starts, u_scene, delta0, spec, f
-
-
-def _levels_data(data: _Data, spec: _Spec, f: int):
-    """The multi-start level's and the halfway level's copies of the data."""
-    return (_coarse_data(data, f) if spec.coarse else data,
-            _coarse_data(data, spec.mid_factor) if spec.mid_factor > 1 else None)
+    camera_c = _coarse_camera(camera, f) if f > 1 else camera
+    return data, camera, camera_c, param, y_starts, u_scene, delta0, spec, f
 
 
 @eqx.filter_jit
-def _fit_jit(data, camera, cameras, param, y_starts, u_scene, delta0, spec, f):
-    return _fit_core(data, _levels_data(data, spec, f), camera, cameras, param, y_starts,
-                     u_scene, delta0, spec)
+def _fit_jit(data, camera, camera_c, param, y_starts, u_scene, delta0, spec, f):
+    coarse = _coarse_data(data, f) if spec.coarse else data
+    return _fit_core(data, coarse, camera, camera_c, param, y_starts, u_scene, delta0, spec)
 
 
 def _message(raw: dict, fixed_names: tuple[str, ...], max_condition: float, threshold: float,
@@ -1023,7 +957,7 @@ def fit_focus(
     mask: ArrayLike | None = None,
     fixed: Sequence[str] | str = (),
     starts: int = 8,
-    rtol: float | None = None,
+    rtol: float = 1e-8,
     atol: float = 1e-10,
     max_steps: int = 100,
     start_steps: int = 30,
@@ -1065,10 +999,10 @@ def fit_focus(
         rtol, atol: optimistix tolerances for the final (full-resolution) solve: a step ends it
             when it moves the solver's internal coordinates (sine-mapped u and log A) by less
             than atol + rtol |y| and every (mean-scaled) residual by less than atol + rtol |r|
-            (max norms). rtol None: 1e-8 in float64, 1e-5 in float32. atol is raised to the
-            float rounding level (16 eps for the coordinates, whose scale is 1, and the
-            residuals' rounding): float32 cannot resolve smaller changes, and with 1e-8 / 1e-10
-            noisy float32 targets never converged (the fit ran to max_steps).
+            (max norms). The defaults are below float32 resolution for a coordinate near 0
+            (the middle of its bounds), so a noisy float32 fit may end at max_steps with
+            converged=False at its (correct) minimum; looser tolerances risk stopping early on
+            the small damped first steps of LM.
         max_steps: per polish solve; start_steps: per multi-start solve (at tolerance 1e-4).
         coarse_size: the multi-start runs on the image box-downsampled by 2^L, the largest factor
             keeping min(H, W) / 2^L >= coarse_size (None: always full resolution); the best
@@ -1097,8 +1031,8 @@ def fit_focus(
     prep = _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, False,
                     rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds,
                     window, max_window, defocus_options, start_steps)
-    data, camera, cameras, param, y_starts, u_scene, delta0, spec, f = prep
-    raw = _fit_jit(data, camera, cameras, param, y_starts, u_scene, delta0, spec, f)
+    data, camera, camera_c, param, y_starts, u_scene, delta0, spec, f = prep
+    raw = _fit_jit(data, camera, camera_c, param, y_starts, u_scene, delta0, spec, f)
     fixed_names = tuple(PARAMS[i] for i in range(2) if i not in spec.free)
     return _result(raw, camera, fixed_names, max_condition, ambiguity_threshold, spec, False)
 
@@ -1122,7 +1056,7 @@ def fit_focus_scene(target: ArrayLike, scene, camera: Camera, *, spp: int = 1,
 
 
 @eqx.filter_jit
-def _batch_jit(targets, data, camera, cameras, param, y_starts, u_scene, delta0, spec, f, mesh):
+def _batch_jit(targets, data, camera, camera_c, param, y_starts, u_scene, delta0, spec, f, mesh):
     from jax.sharding import NamedSharding, PartitionSpec
 
     batch = NamedSharding(mesh, PartitionSpec("batch"))
@@ -1130,8 +1064,8 @@ def _batch_jit(targets, data, camera, cameras, param, y_starts, u_scene, delta0,
 
     def one(t):
         d = eqx.tree_at(lambda d: d.target, data, t)
-        return _fit_core(d, _levels_data(d, spec, f), camera, cameras, param, y_starts, u_scene,
-                         delta0, spec)
+        coarse = _coarse_data(d, f) if spec.coarse else d
+        return _fit_core(d, coarse, camera, camera_c, param, y_starts, u_scene, delta0, spec)
 
     # XLA's SPMD partitioner splits the vmapped fits along the batch axis; the shared images are
     # replicated. (Under vmap every fit in a shard steps until the slowest has converged.)
@@ -1178,7 +1112,7 @@ def fit_focus_batch(
                     opts["loss_scale"], opts["robust_rounds"], opts["window"],
                     opts["max_window"], opts["defocus_options"], opts["start_steps"],
                     name="fit_focus_batch")
-    data, camera, cameras, param, y_starts, u_scene, delta0, spec, f = prep
+    data, camera, camera_c, param, y_starts, u_scene, delta0, spec, f = prep
     devices = list(jax.devices() if devices is None else devices)
     mesh = Mesh(np.array(devices), ("batch",))
     tg = data.target
@@ -1188,7 +1122,7 @@ def fit_focus_batch(
         tg = jnp.concatenate([tg, jnp.repeat(tg[-1:], pad, axis=0)])
     tg = jax.device_put(tg, NamedSharding(mesh, PartitionSpec("batch")))
     shared = eqx.tree_at(lambda d: d.target, data, data.target[0])
-    raw = _batch_jit(tg, shared, camera, cameras, param, y_starts, u_scene, delta0, spec, f,
+    raw = _batch_jit(tg, shared, camera, camera_c, param, y_starts, u_scene, delta0, spec, f,
                      mesh)
     raw = jax.tree_util.tree_map(lambda a: np.asarray(a)[:b], raw)
     fixed_names = tuple(PARAMS[i] for i in range(2) if i not in spec.free)
