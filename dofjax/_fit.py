@@ -839,8 +839,7 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         model_c = model
     spec = _Spec(
         model=model, model_coarse=model_c, solver=solver, loss=loss,
-        auto_scale=(loss != "l2" and loss_scale is None), free=free,
-        rtol=float(rtol),
+        auto_scale=(loss != "l2" and loss_scale is None), free=free, rtol=float(rtol),
         atol=float(atol), max_steps=int(max_steps), coarse=f > 1, robust_rounds=robust_rounds,
         start_steps=int(start_steps))
     data = _Data(target=jnp.asarray(tgt, dtype), rgb=jnp.asarray(rgb_a, dtype),

@@ -109,10 +109,5 @@ def main(argv=None) -> None:
     print(f"wrote {prefix}.json and {prefix}.png (target | fitted | 4x |residual|)")
 
 
-def result_window(window, result) -> float | None:
-    """The window used to draw the fitted image: the fit's, or one that holds its largest CoC."""
-    return window if window is not None else max(float(result.max_coc), 1.0)
-
-
 if __name__ == "__main__":
     main()

@@ -3,9 +3,9 @@
 A target made by `defocus(rgbd, camera)` blurs what a mirror shows at its virtual depth and lets
 blurred foreground edges uncover the peeled layers. Fitting it with the RGBD is exact; fitting it
 with the plain rgb/depth (the only input fit_focus took before) is not. The images are small and
-`coarse_size` is set so that the multi-start level (1/4) and the halfway level (1/2) both run,
-which exercises the pooling of the mirror layer and the peeled layers. (Compiling the real
-defocus into the solver at three levels takes ~30 s per fit here.)
+`coarse_size` is set so that the multi-start runs at half resolution, which exercises the
+pooling of the mirror layer and the peeled layers. (Compiling the real defocus into the solver
+at both levels takes ~30 s per fit here.)
 """
 
 import os
@@ -77,5 +77,10 @@ def test_rgbd_bad_input():
                       reflection_depth=rgbd.reflection_depth)
     with pytest.raises(ValueError, match="fit_focus: reflection shape"):
         fit_focus(target, bad, cam)
+    nan = dofjax.RGBD(rgb=rgbd.rgb, depth=rgbd.depth,
+                      reflection=rgbd.reflection.at[0, 0, 0].set(np.nan),
+                      reflection_depth=rgbd.reflection_depth)
+    with pytest.raises(ValueError, match="fit_focus: reflection must be finite"):
+        fit_focus(target, nan, cam)
     with pytest.raises(ValueError, match="custom model"):
         fit_focus(target, rgbd, cam, model=lambda rgb, depth, camera: rgb)
