@@ -19,7 +19,7 @@ How the fit works:
   *other side* of the scene's median inverse depth are then polished at full resolution, one
   after the other (the second only if it exists).
 - Cost per solver step: the residual's JVP is a product with a Jacobian materialised once per
-  evaluation by `jax.jacfwd` (`_dense_jacobian`), so optimistix's linearisations (one per
+  evaluation by `jax.jacfwd` (`_autodiff.dense_jacobian`), so optimistix's linearisations (one per
   column, the predicted reduction, every rejected step) never run the model again.
   Levenberg-Marquardt accepts steps that change the loss only at float rounding level
   (`_TrustRegion`).
@@ -49,6 +49,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from ._autodiff import dense_jacobian
 from ._camera import Camera, coc_radius
 from ._numerics import inverse_depth, safe_div
 from ._rgbd import RGBD, Layers
@@ -276,27 +277,6 @@ def _residual_ul(ul, data: _Data, camera: Camera, model: Callable, loss: str, de
     return (r / jnp.sqrt(n)).reshape(-1)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def _dense_jacobian(fn, y, args):
-    """fn(y, args), differentiated through a Jacobian materialised once per evaluation.
-
-    optimistix's Gauss-Newton family linearises the residual at every step, then applies the
-    linearisation once per column of J, again for the predicted reduction and for every
-    rejected LM step: each a pass through the whole defocus model, and each a copy of it in the
-    compiled program. With 1 or 2 unknowns it is cheaper to build the (n, p) Jacobian by one
-    forward-mode pass with p tangents and make the linearisation the product `J @ dy`.
-    """
-    return fn(y, args)
-
-
-@_dense_jacobian.defjvp
-def _dense_jacobian_jvp(fn, primals, tangents):
-    y, args = primals
-    dy = tangents[0]  # args (images, camera, robust scale) are not differentiated
-    jac, r = jax.jacfwd(lambda y_: (fn(y_, args),) * 2, has_aux=True)(y)
-    return r, jac @ dy
-
-
 def _solve(y0, data, camera, param, spec, model, delta, rtol, atol):
     """One optimistix least-squares solve from y0 (unconstrained coordinates of the free params).
 
@@ -308,7 +288,7 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol):
         return _residual_ul(param.to_ul(y, spec.free), data, camera, model, spec.loss, delta)
 
     def fn(y, args):
-        return _dense_jacobian(residual, y, args)
+        return dense_jacobian(residual, y, args)
 
     # float rounding of the model's pixels (a few eps of the image's rms), as a mean square
     eps = jnp.finfo(data.target.dtype).eps

@@ -65,8 +65,8 @@ def test_noise_free_recovery():
 
 def test_dense_jacobian_residual_derivatives():
     # The solvers' residual differentiates through a Jacobian materialised by jacfwd
-    # (_fit._dense_jacobian): forward and reverse mode must equal plain autodiff.
-    from dofjax._fit import _dense_jacobian
+    # (_autodiff.dense_jacobian): forward and reverse mode must equal plain autodiff.
+    from dofjax._autodiff import dense_jacobian as _dense_jacobian
 
     rgb, depth = scene()
 
@@ -82,6 +82,17 @@ def test_dense_jacobian_residual_derivatives():
     np.testing.assert_allclose(got_fwd, want, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(got_rev, want, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(_dense_jacobian(residual, y, args), residual(y, args))
+    # second order (Gauss-Newton's J^T J needs it nowhere, but a user's Hessian does)
+    def loss(fn):
+        return lambda y: jnp.sum(fn(y, args) ** 2)
+    np.testing.assert_allclose(
+        jax.hessian(loss(lambda y, a: _dense_jacobian(residual, y, a)))(y),
+        jax.hessian(loss(residual))(y), rtol=1e-10)
+    # derivatives w.r.t. args (plain autodiff inside the rule), both modes
+    for mode in (jax.jacfwd, jax.jacrev):
+        np.testing.assert_allclose(
+            mode(lambda a: jnp.sum(_dense_jacobian(residual, y, a) ** 2))(args),
+            mode(lambda a: jnp.sum(residual(y, a) ** 2))(args), rtol=1e-10)
 
 
 @pytest.mark.parametrize(
