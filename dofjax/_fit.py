@@ -50,6 +50,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._autodiff import dense_jacobian
+from ._defocus import plain_autodiff
 from ._camera import Camera, coc_radius
 from ._numerics import inverse_depth, safe_div
 from ._rgbd import RGBD, Layers
@@ -259,9 +260,11 @@ class _Param(eqx.Module):
 
 def _predict(ul: Array, data: _Data, camera: Camera, model: Callable) -> Array:
     cam = camera.replace(focus_distance=1.0 / ul[0], aperture_radius=jnp.exp(ul[1]))
-    if data.extras is None:
-        return model(data.rgb, data.depth, cam)
-    return model(data.rgb, data.depth, cam, **data.extras.kwargs())
+    extras = {} if data.extras is None else data.extras.kwargs()
+    # the solvers differentiate the residual through their own dense Jacobian (`_solve`), the
+    # covariance by jacfwd: the defocus's own one would only be nested inside
+    with plain_autodiff():
+        return model(data.rgb, data.depth, cam, **extras)
 
 
 def _residual_ul(ul, data: _Data, camera: Camera, model: Callable, loss: str, delta) -> Array:
