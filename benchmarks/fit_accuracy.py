@@ -3,7 +3,8 @@ reference targets.
 
     python benchmarks/fit_accuracy.py --suite     [--cases 100] [--size 256]
     python benchmarks/fit_accuracy.py --noise     [--noise-scenes 3] [--draws 50] [--sigma 0.01]
-    python benchmarks/fit_accuracy.py --reference [--ref-cases 10] [--spp 1024]
+    python benchmarks/fit_accuracy.py --reference [--ref-cases 10] [--spp 1024] [--ref-layers 3]
+        [--ref-border auto] [--ref-sharp-spp 64] [--start-at-truth]
     python benchmarks/fit_accuracy.py --suite --cases 5 --size 64       # quick check, ~1-2 min
 
 No part flag runs all three. Scenes and cameras are data_gen samples (`data_gen.build_sample` of
@@ -26,15 +27,22 @@ b. --noise: `--noise-scenes` identifiable scenes, each with `--draws` Gaussian n
    |bias| / std (target < 0.3). Draws that end > 10 bounds away (a wrong basin) are counted as
    outliers and left out of std and bias (and listed).
 c. --reference: targets from `dofjax.render_reference` at `--spp` (cached in
-   benchmarks/results/cache/ under a key of the scene, camera, size, spp and random key): the
-   model no longer matches exactly. Median relative error of d (target 1 %) and A (target 3 %).
+   benchmarks/results/cache/ under a key of the scene, camera, size, spp, random key and a hash
+   of the renderer's source): the model no longer matches exactly. Median relative error of d
+   (target 1 %) and A (target 3 %). The fit's sharp input is rendered at `--ref-sharp-spp`
+   (default 64) with `--ref-layers` peeled layers (default 3; with the mirror layer), and a band
+   of `--ref-border` px at the frame is masked out (default "auto": ceil(window) + 1, see
+   `border_px`). `--ref-layers 0 --ref-border 0 --ref-sharp-spp 16` is the earlier
+   configuration (visible surface only, every pixel).
 
-Writes benchmarks/results/fit_accuracy_{suite,noise,reference}.md, .json (per-case rows) and .png.
+Writes benchmarks/results/fit_accuracy_{suite,noise,reference}.md, .json (per-case rows) and .png
+(`--out` another directory).
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import json
 import math
@@ -98,12 +106,15 @@ def in_bounds(truth: dict, bounds: dict) -> bool:
     return all(bounds[k][0] <= truth[k] <= bounds[k][1] for k in PARAMS)
 
 
-def fit_case(target, case, guess, bounds, args) -> dict:
+def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None) -> dict:
+    """fit_focus of `target` from the case's sharp rgb and depth, or from `rgbd` (an `RGBD` from
+    `dofjax.render`: its peeled layers and mirror layer enter the model), on the `mask` pixels."""
     import dofjax
 
+    sharp = (rgbd, guess) if rgbd is not None else (case["rgb"], case["depth"], guess)
     t = time.perf_counter()
-    res = dofjax.fit_focus(target, case["rgb"], case["depth"], guess, bounds=bounds,
-                           window=args.window, starts=args.starts)
+    res = dofjax.fit_focus(target, *sharp, bounds=bounds, mask=mask, window=args.window,
+                           starts=args.starts)
     seconds = time.perf_counter() - t
     row = {"seed": case["seed"], "index": case["index"], "kind": case["kind"],
            "identifiable_kind": bool(case["identifiable"]), "truth": case["truth"],
@@ -154,9 +165,9 @@ def _command() -> str:
     for a in argv:
         if skip:
             skip = False
-        elif a in ("--cache", "--jax-cache"):
+        elif a in ("--cache", "--jax-cache", "--out"):
             skip = True
-        elif not a.startswith(("--cache=", "--jax-cache=")):
+        elif not a.startswith(("--cache=", "--jax-cache=", "--out=")):
             out.append(a)
     return " ".join(out)
 
@@ -391,8 +402,40 @@ def noise_study(args) -> None:
 # c. Lens-sampling reference targets.
 
 
+# The modules `render_reference` runs (and `scene_from_dict`, which builds its scene): their
+# source goes into the reference cache key, so a changed renderer re-renders instead of reusing a
+# stale target.
+RENDERER_SOURCES = ("_reference.py", "_raycast.py", "_intersect.py", "_sampling.py", "_scene.py",
+                    "_scenefile.py", "_camera.py", "_textures.py", "_numerics.py", "_rgbd.py")
+
+
+# The modules of the fit's model and solver: their source hash goes into the results header
+# (not a cache key: nothing of theirs is cached), so a table can be matched to the code it ran.
+MODEL_SOURCES = ("_defocus.py", "_sliced.py", "_kernels.py", "_fit.py", "_autodiff.py",
+                 "_uncertainty.py")
+
+
+@functools.cache
+def renderer_hash(sources=RENDERER_SOURCES) -> str:
+    """sha256 (16 hex digits) of the source of the dofjax modules the reference render uses (or of
+    `sources`). Cached: read once (`main` calls it at the start, next to importing dofjax), so a
+    source edited during a run does not change the key or the header half-way."""
+    import dofjax
+
+    h = hashlib.sha256()
+    root = os.path.dirname(os.path.abspath(dofjax.__file__))
+    for name in sources:
+        path = os.path.join(root, name)
+        h.update(name.encode())
+        if os.path.exists(path):
+            with open(path, "rb") as f:
+                h.update(f.read())
+    return h.hexdigest()[:16]
+
+
 def reference_target(case: dict, spp: int, cache: str) -> tuple[np.ndarray, bool]:
-    """`render_reference` of the case's scene and true camera at `spp`, cached on disk."""
+    """`render_reference` of the case's scene and true camera at `spp`, cached on disk under a key
+    of the scene, camera, spp, random key, dtype and the renderer's source (`renderer_hash`)."""
     import dofjax
 
     cam = case["camera"]
@@ -401,7 +444,8 @@ def reference_target(case: dict, spp: int, cache: str) -> tuple[np.ndarray, bool
                         "fov": float(cam.fov), "eye": np.asarray(cam.eye).tolist(),
                         "target": np.asarray(cam.target).tolist(),
                         "up": np.asarray(cam.up).tolist(), "truth": case["truth"], "spp": spp,
-                        "key": key_seed, "dtype": str(np.dtype(jax.numpy.result_type(float)))},
+                        "key": key_seed, "dtype": str(np.dtype(jax.numpy.result_type(float))),
+                        "code": renderer_hash()},
                        sort_keys=True)
     digest = hashlib.sha256(ident.encode()).hexdigest()[:16]
     path = os.path.join(cache, f"fitref_{digest}.npy")
@@ -416,43 +460,171 @@ def reference_target(case: dict, spp: int, cache: str) -> tuple[np.ndarray, bool
     return img, False
 
 
+def border_px(args) -> int:
+    """Width (px) of the frame band left out of the reference fits (`--ref-border`).
+
+    "auto": ceil(window) + 1. The reference blurs in light from outside the frame, which the
+    model of the sharp render cannot, up to the target's largest |CoC| from the edge (+1 px for
+    the pixel footprint). The bound used is the fit's static defocus `window`: the largest blur
+    the fit's model renders (larger CoCs are clamped to it) and, by default, data_gen's largest
+    target CoC, max(2, 16 * size / 256) px: the same for every case, set by the data set's
+    configuration, not by the case's true camera. (The fit's aperture bound reaches
+    `--coc-reach` windows, which would mask most of the frame.)"""
+    if args.ref_border == "auto":
+        return int(math.ceil(args.window)) + 1
+    return int(args.ref_border)
+
+
+def border_mask(hw: tuple[int, int], band: int) -> np.ndarray | None:
+    """(H, W) bool, False within `band` px of the frame; None for band 0 (every pixel)."""
+    if band <= 0:
+        return None
+    if 2 * band >= min(hw):
+        raise ValueError(f"--ref-border {band} px leaves no pixel of a {hw[1]}x{hw[0]} image")
+    mask = np.zeros(hw, bool)
+    mask[band:-band, band:-band] = True
+    return mask
+
+
+def edge_mask(depth: np.ndarray, band: float) -> np.ndarray | None:
+    """(H, W) bool, False within `band` px of a depth discontinuity of the sharp render (4-
+    neighbours whose z-depths differ by > 5 % of the nearer, or one of them background); None for
+    band 0. From the sharp depth alone: where the model of a sharp RGB-D is least exact (each
+    pixel has one depth, so partial occlusion at an edge is approximate)."""
+    if band <= 0:
+        return None
+    from scipy.ndimage import distance_transform_edt
+
+    z = np.asarray(depth, np.float64)
+    edge = np.zeros(z.shape, bool)
+    for axis in (0, 1):
+        a = np.swapaxes(z, 0, axis)
+        z0, z1 = a[:-1], a[1:]
+        fin = np.isfinite(z0) & np.isfinite(z1)
+        with np.errstate(invalid="ignore"):
+            jump = np.where(fin, np.abs(z1 - z0) > 0.05 * np.minimum(z0, z1),
+                            np.isfinite(z0) != np.isfinite(z1))
+        e = np.swapaxes(edge, 0, axis)
+        e[:-1] |= jump
+        e[1:] |= jump
+    if not edge.any():
+        return None
+    return distance_transform_edt(~edge) >= band
+
+
+def sharp_rgbd(case: dict, args):
+    """The fit's sharp input: None (the case's visible-surface rgb and depth: `--ref-layers 0`),
+    or `dofjax.render(scene, pinhole, spp=--ref-sharp-spp, layers=--ref-layers)`: the RGBD whose
+    peeled layers and mirror layer (scenes with mirrors) enter the model. Its depth is the
+    pixel-centre depth of the case's render (checked), so the data_gen cases and their true
+    cameras are the same as with --ref-layers 0."""
+    import dofjax
+
+    if args.ref_layers <= 0:
+        return None
+    cam = case["camera"]
+    pinhole = cam.replace(focus_distance=1.0, aperture_radius=0.0)
+    rgbd = dofjax.render(dofjax.scene_from_dict(case["scene"]), pinhole,
+                         spp=args.ref_sharp_spp, layers=args.ref_layers)
+    if not np.array_equal(np.asarray(rgbd.depth), case["depth"]):
+        raise RuntimeError(f"sample {case['index']}: the layered render's depth differs from "
+                           "the data_gen sample's")
+    return rgbd
+
+
+def ref_config(args) -> str:
+    """One line: the reference part's configuration (what changes the model or the fitted
+    pixels), for the results header."""
+    layers = (f"{args.ref_layers} peeled layer(s) + mirror layer" if args.ref_layers > 0
+              else "visible surface only")
+    band = border_px(args)
+    border = (f"{band} px ({'auto: ceil(window) + 1' if args.ref_border == 'auto' else 'fixed'})"
+              if band > 0 else "none (every pixel fitted)")
+    return (f"Reference configuration: reference spp {args.spp}; sharp input: spp "
+            f"{args.ref_sharp_spp}, {layers} (`--ref-layers {args.ref_layers}`); border mask: "
+            f"{border} (`--ref-border {args.ref_border}`); depth-edge mask: "
+            f"{f'{args.ref_edge_mask:g} px' if args.ref_edge_mask > 0 else 'none'} "
+            f"(`--ref-edge-mask {args.ref_edge_mask:g}`); start: "
+            f"{'truth' if args.start_at_truth else 'random'}; renderer source hash "
+            f"{renderer_hash()} (in the cache key), model/fit source hash "
+            f"{renderer_hash(MODEL_SOURCES)}.\n")
+
+
 def reference(args) -> None:
     import dofjax
 
     cfg = data_config(args.size, args.ref_sharp_spp, args.kinds)
     cases = identifiable_cases(cfg, args.seed, args.first, args.ref_cases)
-    forward = jax.jit(dofjax.DefocusModel(window=args.window))
+    model = dofjax.DefocusModel(window=args.window)
+    forward = jax.jit(model)
+    band = border_px(args)
+    frame_mask = border_mask((args.size, args.size), band)
     rows = []
     for case in tqdm(cases, desc="reference", unit="case"):
         t = time.perf_counter()
         target, cached = reference_target(case, args.spp, args.cache)
         render_s = time.perf_counter() - t
+        rgbd = sharp_rgbd(case, args)
+        mask = frame_mask
+        edges = edge_mask(case["depth"], args.ref_edge_mask)
+        if edges is not None:
+            mask = edges if mask is None else mask & edges
+        w = np.ones((args.size, args.size)) if mask is None else mask.astype(float)
         rng = np.random.default_rng([args.seed, case["index"], 1])
         guess, bounds = guess_camera(case, rng, args.coc_reach * args.window)
         if args.start_at_truth:  # diagnostic: model mismatch alone, no basin to find
             guess = case["camera"]
-        row = fit_case(target, case, guess, bounds, args)
-        # How far the model is from the reference at the truth, and at the fit (relative rms):
-        # a fit with the smaller residual is what the mismatch favours.
-        rms = float(np.sqrt(np.mean(np.square(target))))
-        at_truth = np.asarray(forward(case["rgb"], case["depth"], case["camera"]))
-        at_fit = np.asarray(forward(case["rgb"], case["depth"], case["camera"].replace(
-            focus_distance=row["focus_distance"], aperture_radius=row["aperture_radius"])))
+        row = fit_case(target, case, guess, bounds, args, rgbd=rgbd, mask=mask)
+        # How far the model (the fit's: same sharp input) is from the reference at the truth and
+        # at the fit, relative rms over the fitted pixels and over the whole frame: a fit with
+        # the smaller residual is what the mismatch favours.
+        if rgbd is None:
+            inputs = (case["rgb"], case["depth"])
+            extras = {}
+        else:
+            inputs = (rgbd.rgb, rgbd.depth)
+            extras = {"reflection": rgbd.reflection, "reflection_depth": rgbd.reflection_depth,
+                      "layers": rgbd.layers}
+        fit_cam = case["camera"].replace(focus_distance=row["focus_distance"],
+                                         aperture_radius=row["aperture_radius"])
+        at_truth = np.asarray(forward(*inputs, case["camera"], **extras)) - target
+        at_fit = np.asarray(forward(*inputs, fit_cam, **extras)) - target
+
+        def rel_rms(r, weight):
+            wr = weight[..., None] * np.ones_like(target)
+            return float(np.sqrt(np.sum(wr * r * r) / np.sum(wr * target * target)))
+
         row.update(reference_seconds=None if cached else render_s, max_coc_px=case["max_coc_px"],
-                   rel_rms_at_truth=float(np.sqrt(np.mean(np.square(at_truth - target)))) / rms,
-                   rel_rms_at_fit=float(np.sqrt(np.mean(np.square(at_fit - target)))) / rms)
+                   ref_layers=args.ref_layers, ref_border_px=band,
+                   ref_sharp_spp=args.ref_sharp_spp, ref_edge_mask_px=args.ref_edge_mask,
+                   fitted_fraction=float(w.mean()),
+                   rel_rms_at_truth=rel_rms(at_truth, w), rel_rms_at_fit=rel_rms(at_fit, w),
+                   rel_rms_at_truth_frame=rel_rms(at_truth, np.ones_like(w)))
         rows.append(row)
+    model_text = ("the sliced defocus of the sharp RGB-D (visible surface only)"
+                  if args.ref_layers <= 0 else
+                  f"the sliced defocus of the sharp RGBD with {args.ref_layers} peeled layers "
+                  "(what a blurred foreground uncovers) and the mirror layer")
     lines = [_header(args, f"lens-sampling reference targets, {args.spp} spp, {len(rows)} scenes",
                      args.ref_sharp_spp),
+             ref_config(args),
              "Targets from `dofjax.render_reference` (thin-lens ray tracing) of the data_gen scene "
-             "at the true camera; the fit's model is the sliced defocus of the sharp RGB-D "
-             "(visible surface only): a model mismatch, as for any real photograph.\n",
+             f"at the true camera; the fit's model is {model_text}: a model mismatch, as for "
+             "any real photograph. "
+             + (f"The fit leaves out a band of {band} px at the frame (`mask=`): there the "
+                "reference blurs in light from outside the frame, which the model cannot."
+                if band > 0 else "Every pixel is fitted (no border mask).")
+             + (f" Pixels within {args.ref_edge_mask:g} px of a depth edge of the sharp render "
+                "are left out too (`--ref-edge-mask`)." if args.ref_edge_mask > 0 else "")
+             + "\n",
              f"Start: {'the truth (--start-at-truth)' if args.start_at_truth else 'random'}. "
-             "rms at truth / at fit: rms(model - reference) / rms(reference) at the true and at "
-             "the fitted camera.\n",
+             "rms at truth / at fit: rms(model - reference) / rms(reference) over the fitted "
+             "pixels at the true and at the fitted camera; frame: at the truth over every "
+             "pixel.\n",
              "| index | kind | max CoC px | true d | fit d | rel err d | true A | fit A | "
-             "rel err A | rms at truth | rms at fit | identifiable | ambiguous |",
-             "|" + "---|" * 13]
+             "rel err A | rms at truth | rms at fit | rms at truth, frame | fitted px | "
+             "identifiable | ambiguous |",
+             "|" + "---|" * 15]
     for r in rows:
         t = r["truth"]
         lines.append(f"| {r['index']} | {r['kind']} | {r['max_coc_px']:.1f} | "
@@ -460,6 +632,7 @@ def reference(args) -> None:
                      f"{r['rel_err_focus_distance']:+.2%} | {t['aperture_radius']:.4g} | "
                      f"{r['aperture_radius']:.4g} | {r['rel_err_aperture_radius']:+.2%} | "
                      f"{r['rel_rms_at_truth']:.4f} | {r['rel_rms_at_fit']:.4f} | "
+                     f"{r['rel_rms_at_truth_frame']:.4f} | {r['fitted_fraction']:.0%} | "
                      f"{r['identifiable']} | {r['ambiguous']} |")
     med = {k: float(np.median(np.abs([r[f"rel_err_{k}"] for r in rows]))) for k in PARAMS}
     by_kind = {}
@@ -475,6 +648,8 @@ def reference(args) -> None:
                      f"{np.median(np.abs([r['rel_err_focus_distance'] for r in rs])):.2%} | "
                      f"{np.median(np.abs([r['rel_err_aperture_radius'] for r in rs])):.2%} |")
     name = "reference_truth_start" if args.start_at_truth else "reference"
+    if args.ref_tag:
+        name += f"_{args.ref_tag}"
     _save(name, "\n".join(lines) + "\n", rows)
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5, 5))
@@ -487,12 +662,15 @@ def reference(args) -> None:
     ax.axhspan(-3, 3, color="green", alpha=0.1)
     ax.set_xlabel("relative error of d, %")
     ax.set_ylabel("relative error of A, %")
-    ax.set_title(f"reference targets, {args.spp} spp, {args.size}x{args.size}")
+    ax.set_title(f"reference targets, {args.spp} spp, {args.size}x{args.size}\n"
+                 f"layers {args.ref_layers}, border {band} px, sharp spp {args.ref_sharp_spp}",
+                 fontsize=9)
     fig.tight_layout()
     fig.savefig(os.path.join(RESULTS, f"fit_accuracy_{name}.png"), dpi=100)
 
 
 def main(argv=None) -> None:
+    global RESULTS
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--suite", action="store_true", help="a. noise-free suite")
@@ -516,18 +694,36 @@ def main(argv=None) -> None:
     p.add_argument("--sigma", type=float, default=0.01)
     p.add_argument("--ref-cases", type=int, default=10)
     p.add_argument("--spp", type=int, default=1024, help="reference samples per pixel")
-    p.add_argument("--ref-sharp-spp", type=int, default=16,
+    p.add_argument("--ref-sharp-spp", type=int, default=64,
                    help="reference part: samples per pixel of the sharp render (antialiased like "
-                   "the reference, whose pixels average jittered positions)")
+                   "the reference, whose pixels average jittered positions; 16 before)")
+    p.add_argument("--ref-layers", type=int, default=3,
+                   help="reference part: peeled layers of the sharp render that enter the model "
+                   "(with the mirror layer); 0: the visible surface only (as before)")
+    p.add_argument("--ref-border", default="auto",
+                   help="reference part: px at the frame left out of the fit (mask), or 'auto': "
+                   "ceil(window) + 1 (see border_px); 0: fit every pixel (as before)")
+    p.add_argument("--ref-edge-mask", type=float, default=0.0,
+                   help="reference part: also leave out pixels within this many px of a depth "
+                   "edge of the sharp render (see edge_mask); 0: off (default)")
+    p.add_argument("--ref-tag", default="",
+                   help="reference part: suffix of the output names, fit_accuracy_reference_TAG.*")
     p.add_argument("--start-at-truth", action="store_true",
                    help="reference part, diagnostic: start the fit at the true camera (model "
                    "mismatch alone); writes fit_accuracy_reference_truth_start.*")
     p.add_argument("--cache", default=os.path.join(RESULTS, "cache"))
+    p.add_argument("--out", default=RESULTS, help="directory of the results (.md, .json, .png)")
     p.add_argument("--x64", action="store_true", help="run in float64")
     p.add_argument("--jax-cache", default=None, metavar="DIR",
                    help="JAX persistent compilation cache: a rerun at the same size skips the "
                    "fit's compile (minutes on a loaded machine)")
     args = p.parse_args(argv)
+    RESULTS = args.out
+    if args.ref_border != "auto":
+        try:
+            args.ref_border = int(args.ref_border)
+        except ValueError:
+            p.error(f"--ref-border: 'auto' or a number of px, got {args.ref_border!r}")
     if args.x64:
         jax.config.update("jax_enable_x64", True)
     if args.jax_cache:
@@ -536,6 +732,7 @@ def main(argv=None) -> None:
     if args.window is None:
         args.window = max(2.0, 16.0 * args.size / 256.0)
     os.makedirs(RESULTS, exist_ok=True)
+    renderer_hash(), renderer_hash(MODEL_SOURCES)  # the sources this run imported
     parts = [n for n in ("suite", "noise", "reference") if getattr(args, n)] or \
         ["suite", "noise", "reference"]
     for name in parts:
