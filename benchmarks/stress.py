@@ -1,12 +1,14 @@
 """Numerical stress sweep of dofjax.defocus: no NaN/inf in outputs or gradients, gradients vs FD.
 
     python benchmarks/stress.py            # prints the table, writes benchmarks/results/stress.md
+    python benchmarks/stress.py --method sliced   # -> benchmarks/results/stress_sliced.md
 
 Sweeps aperture 1e-6..1e3 (world units, fixed scene), focus 1e-3..1e6, depths exactly on the
 focal plane, depths of 1e-6, background at +inf, HDR colours up to 1e6, in float32 and float64.
 For each case: are the image and d(loss)/d(focus, aperture) (reverse and forward mode) finite, and
 in float64 the relative error of the gradient against central finite differences (checked to
-1e-5 where the function is smooth: no |c| clamped at the window).
+1e-5 where the function is smooth: no |c| clamped at the window; the step is the smallest of
+1e-6 ... 1e-3 relative whose roundoff is below 1e-6 of the derivative).
 """
 
 from __future__ import annotations
@@ -45,13 +47,14 @@ def scene(kind, focus):
     return rgb, depth
 
 
-def run_case(kind, focus, aperture, dtype):
+def run_case(kind, focus, aperture, dtype, method="pyramid"):
     rgb, depth = scene(kind, focus)
     if kind not in ("all on focal plane",) and focus != 2.0:
         depth = depth * (focus / 2.0)  # keep the scene around the focus distance
         depth[14:20, 10:20] = focus
     cam = dofjax.Camera(width=N, height=N, fov=40.0, focus_distance=2.0, aperture_radius=0.1)
-    f = dofjax.defocus_fn(rgb.astype(dtype), depth.astype(dtype), cam, window=WINDOW)
+    f = dofjax.defocus_fn(rgb.astype(dtype), depth.astype(dtype), cam, window=WINDOW,
+                          method=method)
     w = jnp.asarray(np.random.default_rng(1).random((N, N, 3)), dtype)
 
     def loss(d, a):
@@ -69,24 +72,33 @@ def run_case(kind, focus, aperture, dtype):
     if dtype == np.float64:
         errs = []
         for i, (x, gx) in enumerate(((focus, g[0]), (aperture, g[1]))):
-            h = 1e-6 * max(abs(x), 1e-6)
-            if i == 0:
-                fd = (loss(x + h, a) - loss(x - h, a)) / (2 * h)
-            else:
-                fd = (loss(d, x + h) - loss(d, x - h)) / (2 * h)
-            # FD roundoff is ~eps |loss| / h: below that the comparison means nothing
-            floor = 1e-16 * abs(float(loss(d, a))) / h
-            if max(abs(float(fd)), abs(float(gx))) < 1e3 * floor:
-                continue
-            errs.append(abs(float(gx) - float(fd)) / max(abs(float(fd)), abs(float(gx))))
+            # central differences with the smallest step 1e-6, 1e-5, ... 1e-3 of |x| whose
+            # roundoff (~eps |loss| / h) stays below 1e-6 of the derivative: smaller steps are
+            # roundoff (a gradient exact to float64 read 1e-3 off at aperture 1e-3 with the
+            # earlier fixed 1e-6 step), larger ones truncation; none: not checked
+            for rel in (1e-6, 1e-5, 1e-4, 1e-3):
+                h = rel * max(abs(x), 1e-6)
+                if i == 0:
+                    fd = (loss(x + h, a) - loss(x - h, a)) / (2 * h)
+                else:
+                    fd = (loss(d, x + h) - loss(d, x - h)) / (2 * h)
+                floor = 1e-16 * abs(float(loss(d, a))) / h
+                if max(abs(float(fd)), abs(float(gx))) >= 1e6 * floor:
+                    errs.append(abs(float(gx) - float(fd)) / max(abs(float(fd)), abs(float(gx))))
+                    break
         fd_err = max(errs) if errs else None
     return finite_out, finite_grad, clamped, fd_err
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--out", default=os.path.join(HERE, "results", "stress.md"))
+    ap.add_argument("--method", default="pyramid", choices=("pyramid", "sliced"))
+    ap.add_argument("--out", default=None,
+                    help="default benchmarks/results/stress.md (pyramid), stress_sliced.md")
     args = ap.parse_args()
+    if args.out is None:
+        name = "stress.md" if args.method == "pyramid" else f"stress_{args.method}.md"
+        args.out = os.path.join(HERE, "results", name)
     cases = []
     for a in (1e-6, 1e-3, 0.1, 10.0, 1e3):
         cases.append(("aperture sweep", 2.0, a))
@@ -102,7 +114,7 @@ def main():
     all_ok = True
     for kind, d, a in cases:
         for dtype in (np.float32, np.float64):
-            fo, fg, cl, err = run_case(kind, d, a, dtype)
+            fo, fg, cl, err = run_case(kind, d, a, dtype, args.method)
             ok = fo and fg and (err is None or cl or err < 1e-5)
             all_ok &= ok
             e = "-" if err is None else f"{err:.1e}"
@@ -113,7 +125,8 @@ def main():
     print(lines[-1])
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w") as fh:
-        fh.write("# dofjax.defocus stress sweep (24x24, window 8 px)\n\n" + "\n".join(lines) + "\n")
+        fh.write(f"# dofjax.defocus stress sweep (24x24, window 8 px, method {args.method})\n\n"
+                 + "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

@@ -36,12 +36,14 @@ def _dense_jacobian_jvp(fn, primals, tangents):
     y, args = primals
     dy, dargs = tangents
     jac, out = jax.jacfwd(lambda y_: (fn(y_, args),) * 2, has_aux=True)(y)
-    dout = jnp.zeros_like(out) if _is_zero(dy) else jnp.tensordot(jac, dy, axes=1)
+    # (in the output's dtype: a float32 image of float64 parameters has float32 tangents)
+    dout = (jnp.zeros_like(out) if _is_zero(dy)
+            else jnp.tensordot(jac, dy, axes=1).astype(out.dtype))
     leaves = jax.tree_util.tree_leaves(dargs, is_leaf=_is_zero)
     if not all(_is_zero(t) for t in leaves):
         # what the args' tangents add: plain forward mode through fn
         dargs = jax.tree_util.tree_map(
             lambda t: jnp.zeros(t.aval.shape, t.aval.dtype) if _is_zero(t) else t, dargs,
             is_leaf=_is_zero)
-        dout = dout + jax.jvp(lambda a: fn(y, a), (args,), (dargs,))[1]
+        dout = dout + jax.jvp(lambda a: fn(y, a), (args,), (dargs,))[1].astype(out.dtype)
     return out, dout
