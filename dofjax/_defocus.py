@@ -525,16 +525,7 @@ def plain_autodiff():
 
 def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blades, rotation, ratio,
          method="pyramid"):
-    if method == "sliced" and not _DENSE.get():
-        out = sliced_defocus(rgb, depth, camera, window=window, blades=blades, rotation=rotation,
-                             ratio=ratio, reflection=reflection,
-                             reflection_depth=reflection_depth, layers=layers)
-        return out, None
     if method == "sliced":
-        # derivatives w.r.t. (focus, aperture) through J = d image / d(focus, aperture), built by
-        # one jacfwd: a reverse-mode gradient then costs that jacfwd (~3x a forward pass), not a
-        # transpose of the shifted-sum blurs (~9x their forward cost on the CPU); derivatives
-        # w.r.t. the images and the camera's other fields by plain autodiff
         def core(y, a):
             rgb, depth, camera, reflection, reflection_depth, layers = a
             cam = camera.replace(focus_distance=y[0], aperture_radius=y[1])
@@ -544,8 +535,14 @@ def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blade
 
         y = jnp.stack(jnp.broadcast_arrays(jnp.asarray(camera.focus_distance),
                                            jnp.asarray(camera.aperture_radius)))
-        # core reads focus and aperture from y only: their copies in args carry no tangent (else
-        # the rule would add a whole second forward-mode pass for a zero contribution)
+        if not _DENSE.get():  # plain autodiff (`plain_autodiff`)
+            return core(y, (rgb, depth, camera, reflection, reflection_depth, layers)), None
+        # derivatives w.r.t. (focus, aperture) through J = d image / d(focus, aperture), built by
+        # one jacfwd: a reverse-mode gradient then costs that jacfwd (~3x a forward pass), not a
+        # transpose of the shifted-sum blurs (~9x their forward cost on the CPU); derivatives
+        # w.r.t. the images and the camera's other fields by plain autodiff. core reads focus
+        # and aperture from y only: their copies in args carry no tangent (else the rule would
+        # add a whole second forward-mode pass for a zero contribution)
         rest = camera.replace(focus_distance=jax.lax.stop_gradient(camera.focus_distance),
                               aperture_radius=jax.lax.stop_gradient(camera.aperture_radius))
         out = dense_jacobian(core, y, (rgb, depth, rest, reflection, reflection_depth, layers))
