@@ -113,8 +113,9 @@ def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None) -> dict:
 
     sharp = (rgbd, guess) if rgbd is not None else (case["rgb"], case["depth"], guess)
     t = time.perf_counter()
+    extra = {} if args.screen_steps is None else {"screen_steps": args.screen_steps}
     res = dofjax.fit_focus(target, *sharp, bounds=bounds, mask=mask, window=args.window,
-                           starts=args.starts)
+                           starts=args.starts, **extra)
     seconds = time.perf_counter() - t
     row = {"seed": case["seed"], "index": case["index"], "kind": case["kind"],
            "identifiable_kind": bool(case["identifiable"]), "truth": case["truth"],
@@ -175,7 +176,9 @@ def _command() -> str:
 def _header(args, what: str, sharp_spp: int | None = None) -> str:
     return (f"# fit_focus accuracy: {what}\n\n"
             f"{args.size}x{args.size}, data_gen seed {args.seed}, window {args.window:g} px, "
-            f"starts {args.starts}, coc_reach x{args.coc_reach:g}, sharp spp "
+            f"starts {args.starts}, screen_steps "
+            f"{'default' if args.screen_steps is None else args.screen_steps}, "
+            f"coc_reach x{args.coc_reach:g}, sharp spp "
             f"{sharp_spp or args.sharp_spp}, "
             f"jax x64={jax.config.jax_enable_x64}, {platform.machine()} "
             f"{os.cpu_count()} CPUs.\n\nCommand: `python benchmarks/fit_accuracy.py "
@@ -688,6 +691,8 @@ def main(argv=None) -> None:
     p.add_argument("--coc-reach", type=float, default=8.0,
                    help="aperture upper bound: a CoC of this many windows")
     p.add_argument("--starts", type=int, default=8, help="fit_focus multi-starts")
+    p.add_argument("--screen-steps", type=int, default=None,
+                   help="fit_focus screen_steps (default: the library's)")
     p.add_argument("--sharp-spp", type=int, default=1, help="samples per pixel of the sharp render")
     p.add_argument("--noise-scenes", type=int, default=3)
     p.add_argument("--draws", type=int, default=50)

@@ -13,6 +13,7 @@ benchmarks/results/fit_speed.md.
 from __future__ import annotations
 
 import argparse
+import inspect
 import os
 import statistics
 import time
@@ -35,6 +36,9 @@ def main(argv=None) -> None:
     p.add_argument("--window", type=float, default=8.0)
     p.add_argument("--diff-step", type=float, default=1e-3, help="scipy relative FD step")
     p.add_argument("--scipy-only", action="store_true", help="skip the dofjax fit")
+    p.add_argument("--screen-steps", type=int, default=None,
+                   help="fit_focus screen_steps (default: the library's)")
+    p.add_argument("--out", default=os.path.join(HERE, "results", "fit_speed.md"))
     p.add_argument("--method", default="sliced", choices=("sliced", "pyramid"),
                    help="defocus method for the target, the fit and the scipy residual")
     a = p.parse_args(argv)
@@ -51,6 +55,10 @@ def main(argv=None) -> None:
     bounds = {"focus_distance": (1.0, 50.0), "aperture_radius": (0.004, 0.1)}
     kw = dict(bounds=bounds, window=a.window, starts=a.starts, rtol=1e-6, atol=1e-9,
               defocus_options={"method": a.method})
+    if a.screen_steps is not None:
+        kw["screen_steps"] = a.screen_steps
+    screen = kw.get("screen_steps", inspect.signature(dofjax.fit_focus).parameters[
+        "screen_steps"].default)
 
     t = time.perf_counter()
     res = None if a.scipy_only else dofjax.fit_focus(target, rgb, depth, cam, **kw)
@@ -107,15 +115,16 @@ def main(argv=None) -> None:
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     ratio = scipy_s / ours
     text = (f"# fit speed, {a.size}x{a.size} quads.json, window {a.window} px, defocus method {a.method}, "
-            f"{os.cpu_count()} CPUs (load average {os.getloadavg()[0]:.1f})\n\n"
+            f"{os.cpu_count()} CPUs (load average {os.getloadavg()[0]:.1f}), screen_steps "
+            f"{screen}\n\n"
             f"truth d={truth['focus_distance']} A={truth['aperture_radius']}, guess "
             f"d={guess['focus_distance']} A={guess['aperture_radius']}; jax x64="
             f"{jax.config.jax_enable_x64}\n\n" + "\n".join(lines) +
             f"\n\nscipy (1 start) / dofjax ({a.starts} starts): {ratio:.2f}x\n"
             f"Targets: <= 1 s per fit, compile <= 20 s, >= 10x faster than scipy FD.\n")
     print(text)
-    os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
-    with open(os.path.join(HERE, "results", "fit_speed.md"), "w") as f:
+    os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)
+    with open(a.out, "w") as f:
         f.write(text)
 
 

@@ -8,7 +8,9 @@ focal plane, depths of 1e-6, background at +inf, HDR colours up to 1e6, in float
 For each case: are the image and d(loss)/d(focus, aperture) (reverse and forward mode) finite, and
 in float64 the relative error of the gradient against central finite differences (checked to
 1e-5 where the function is smooth: no |c| clamped at the window; the step is the smallest of
-1e-6 ... 1e-3 relative whose roundoff is below 1e-6 of the derivative).
+1e-6 ... 1e-3 relative whose roundoff is below 1e-6 of the derivative; where the difference
+quotient at 10x that step differs by more than 1e-3, the function is only C^1 there and the
+comparison is reported as not converged instead).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import dofjax  # noqa: E402
 HERE = os.path.dirname(os.path.abspath(__file__))
 N = 24
 WINDOW = 8.0
+PARAM_NAMES = ("focus", "aperture")
 
 
 def scene(kind, focus):
@@ -69,6 +72,7 @@ def run_case(kind, focus, aperture, dtype, method="pyramid"):
     finite_grad = all(bool(jnp.isfinite(x)) for x in (*g, *jf))
     clamped = float(f.max_abs_coc(d, a)) > WINDOW
     fd_err = None
+    kinks = []
     if dtype == np.float64:
         errs = []
         for i, (x, gx) in enumerate(((focus, g[0]), (aperture, g[1]))):
@@ -76,18 +80,27 @@ def run_case(kind, focus, aperture, dtype, method="pyramid"):
             # roundoff (~eps |loss| / h) stays below 1e-6 of the derivative: smaller steps are
             # roundoff (a gradient exact to float64 read 1e-3 off at aperture 1e-3 with the
             # earlier fixed 1e-6 step), larger ones truncation; none: not checked
+            def central(h):
+                if i == 0:
+                    return float((loss(x + h, a) - loss(x - h, a)) / (2 * h))
+                return float((loss(d, x + h) - loss(d, x - h)) / (2 * h))
+
             for rel in (1e-6, 1e-5, 1e-4, 1e-3):
                 h = rel * max(abs(x), 1e-6)
-                if i == 0:
-                    fd = (loss(x + h, a) - loss(x - h, a)) / (2 * h)
-                else:
-                    fd = (loss(d, x + h) - loss(d, x - h)) / (2 * h)
+                fd = central(h)
                 floor = 1e-16 * abs(float(loss(d, a))) / h
-                if max(abs(float(fd)), abs(float(gx))) >= 1e6 * floor:
-                    errs.append(abs(float(gx) - float(fd)) / max(abs(float(fd)), abs(float(gx))))
+                if max(abs(fd), abs(float(gx))) >= 1e6 * floor:
+                    scale = max(abs(fd), abs(float(gx)))
+                    # Where the function is only C^1 (a kink in the second derivative, as on
+                    # the focal plane, where near and far blur differ at O(c^2)), the central
+                    # difference is O(h) off and shrinks with h: not a gradient error.
+                    if abs(central(10 * h) - fd) > 1e-3 * scale:
+                        kinks.append(PARAM_NAMES[i])
+                    else:
+                        errs.append(abs(float(gx) - fd) / scale)
                     break
         fd_err = max(errs) if errs else None
-    return finite_out, finite_grad, clamped, fd_err
+    return finite_out, finite_grad, clamped, fd_err, kinks
 
 
 def main():
@@ -95,6 +108,8 @@ def main():
     ap.add_argument("--method", default="pyramid", choices=("pyramid", "sliced"))
     ap.add_argument("--out", default=None,
                     help="default benchmarks/results/stress.md (pyramid), stress_sliced.md")
+    ap.add_argument("--only", type=lambda v: v.split(","), default=None,
+                    help="comma-separated case names to run (default all)")
     args = ap.parse_args()
     if args.out is None:
         name = "stress.md" if args.method == "pyramid" else f"stress_{args.method}.md"
@@ -114,10 +129,17 @@ def main():
     all_ok = True
     for kind, d, a in cases:
         for dtype in (np.float32, np.float64):
-            fo, fg, cl, err = run_case(kind, d, a, dtype, args.method)
+            if args.only and kind not in args.only:
+                continue
+            fo, fg, cl, err, kinks = run_case(kind, d, a, dtype, args.method)
+            # every case compiles its own programs (its image is a constant of them): without
+            # this the executables pile up until LLVM cannot map more code (crashed at case 21)
+            jax.clear_caches()
             ok = fo and fg and (err is None or cl or err < 1e-5)
             all_ok &= ok
             e = "-" if err is None else f"{err:.1e}"
+            if kinks:
+                e += f" (FD not converged in {', '.join(kinks)}: C1 point)"
             lines.append(f"| {kind} | {d:g} | {a:g} | {np.dtype(dtype).name} | {fo} | {fg} | {cl} "
                          f"| {e} | {'yes' if ok else 'NO'} |")
             print(lines[-1], flush=True)

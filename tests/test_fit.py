@@ -226,6 +226,24 @@ def test_real_defocus_recovery():
     assert abs(float(res.aperture_radius) / 0.15 - 1) < 1e-4
 
 
+def test_coarse_depth_follows_the_light():
+    """The multi-start level blurs a block's light at the depth of what emits it: one bright
+    pixel (radiance 100, depth 1) among 15 dim ones (0.01, depth 4) gives the block depth ~1,
+    not the plain mean inverse depth (~3.2); blocks of equal radiance keep the plain mean."""
+    from dofjax._fit import _coarse_data, _Data
+
+    rgb = jnp.full((8, 8, 3), 0.01).at[1, 2].set(100.0)
+    depth = jnp.full((8, 8), 4.0).at[1, 2].set(1.0).at[4:, 4:].set(jnp.inf)
+    depth = depth.at[4:, :4].set(jnp.array([[1.0, 2.0, 4.0, 8.0]] * 4))
+    rgb = rgb.at[4:].set(0.5)
+    data = _Data(target=rgb, rgb=rgb, depth=depth, weight=jnp.ones((8, 8)))
+    z = np.asarray(_coarse_data(data, 4).depth)
+    assert z[0, 0] == pytest.approx(1.0, rel=0.01)
+    assert z[0, 1] == pytest.approx(4.0, rel=1e-6)
+    assert z[1, 0] == pytest.approx(1.0 / np.mean([1.0, 0.5, 0.25, 0.125]), rel=1e-5)
+    assert np.isinf(z[1, 1])
+
+
 # --- bad input: ValueError before any solver runs ------------------------------------------
 
 
@@ -268,3 +286,5 @@ def test_bad_bounds_and_options():
     _bad("fixed: names", fixed=("fov",))
     _bad("fixed: cannot fix both", fixed=("focus_distance", "aperture_radius"))
     _bad("starts: must be", starts=0)
+    _bad("screen_steps must be an integer >= 0", screen_steps=-1)
+    _bad("max_steps must be an integer >= 1", max_steps=2.5)
