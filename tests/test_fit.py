@@ -227,9 +227,10 @@ def test_real_defocus_recovery():
 
 
 def test_coarse_depth_follows_the_light():
-    """The multi-start level blurs a block's light at the depth of what emits it: one bright
+    """The multi-start level blurs a block's light at the depth of what emits it: one HDR
     pixel (radiance 100, depth 1) among 15 dim ones (0.01, depth 4) gives the block depth ~1,
-    not the plain mean inverse depth (~3.2); blocks of equal radiance keep the plain mean."""
+    not the plain mean inverse depth (3.4); blocks at or below the 90th percentile of radiance
+    keep the plain mean."""
     from dofjax._fit import _coarse_data, _Data
 
     rgb = jnp.full((8, 8, 3), 0.01).at[1, 2].set(100.0)
@@ -238,7 +239,7 @@ def test_coarse_depth_follows_the_light():
     rgb = rgb.at[4:].set(0.5)
     data = _Data(target=rgb, rgb=rgb, depth=depth, weight=jnp.ones((8, 8)))
     z = np.asarray(_coarse_data(data, 4).depth)
-    assert z[0, 0] == pytest.approx(1.0, rel=0.01)
+    assert z[0, 0] == pytest.approx(1.0, rel=0.06)
     assert z[0, 1] == pytest.approx(4.0, rel=1e-6)
     assert z[1, 0] == pytest.approx(1.0 / np.mean([1.0, 0.5, 0.25, 0.125]), rel=1e-5)
     assert np.isinf(z[1, 1])
