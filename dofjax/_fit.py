@@ -584,16 +584,19 @@ def _depth_weight(depth_a: np.ndarray, mask) -> np.ndarray:
     return weight
 
 
-def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, batch):
-    """All the checks that must happen before any solver runs. Returns numpy arrays."""
+def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, batch, counts):
+    """All the checks that must happen before any solver runs. Returns numpy arrays.
+
+    `counts` maps an integer option's name to (value, least allowed value)."""
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a dofjax.Camera, got {type(camera).__name__}")
     if solver not in SOLVERS:
         raise ValueError(f"solver: must be one of {SOLVERS}, got {solver!r}")
     if loss not in LOSSES:
         raise ValueError(f"loss: must be one of {LOSSES}, got {loss!r}")
-    if isinstance(starts, bool) or not isinstance(starts, int) or starts < 1:
-        raise ValueError(f"starts: must be an integer >= 1, got {starts!r}")
+    for key, (value, least) in counts.items():
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            raise ValueError(f"{key}: must be an integer >= {least}, got {value!r}")
     fixed = (fixed,) if isinstance(fixed, str) else tuple(fixed)
     for name in fixed:
         if name not in PARAMS:
@@ -783,12 +786,10 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
              rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds, window,
              max_window, defocus_options, start_steps, screen_steps, name="fit_focus"):
     rgb, depth, camera, extras = _unpack(name, rgb, depth, camera, model)
-    for key, value, least in (("max_steps", max_steps, 1), ("start_steps", start_steps, 1),
-                              ("screen_steps", screen_steps, 0)):
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < least:
-            raise ValueError(f"{name}: {key} must be an integer >= {least}, got {value!r}")
     tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds = _validate(
-        target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, batch)
+        target, rgb, depth, camera, mask, bounds, fixed, solver, loss, batch,
+        dict(starts=(starts, 1), max_steps=(max_steps, 1), start_steps=(start_steps, 1),
+             screen_steps=(screen_steps, 0)))
     dtype = jnp.result_type(float)
     free = tuple(i for i, n in enumerate(PARAMS) if n not in fixed)
     u_lo, u_hi = 1.0 / d_bounds[1], 1.0 / d_bounds[0]

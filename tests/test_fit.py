@@ -287,5 +287,5 @@ def test_bad_bounds_and_options():
     _bad("fixed: names", fixed=("fov",))
     _bad("fixed: cannot fix both", fixed=("focus_distance", "aperture_radius"))
     _bad("starts: must be", starts=0)
-    _bad("screen_steps must be an integer >= 0", screen_steps=-1)
-    _bad("max_steps must be an integer >= 1", max_steps=2.5)
+    _bad("screen_steps: must be an integer >= 0", screen_steps=-1)
+    _bad("max_steps: must be an integer >= 1", max_steps=2.5)
