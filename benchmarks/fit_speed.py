@@ -6,7 +6,8 @@ Scene: examples/quads.json rendered at size x size. Target: dofjax.defocus at a 
 Reports the compile time (first call), the median wall time of `dofjax.fit_focus` after
 compilation, and `scipy.optimize.least_squares` (trust-region reflective, 2-point finite
 differences) on the *same* residual (the same jitted defocus, in the same (u, log A) unknowns)
-from the same initial guess to the same tolerance, single start. Writes
+to the same tolerance: from the same initial guess (single start), and with fit_focus's global
+strategy (the guess plus starts - 1 points evenly spaced in u, each solved, the best kept). Writes
 benchmarks/results/fit_speed.md.
 """
 
@@ -90,13 +91,27 @@ def main(argv=None) -> None:
         nfev[0] += 1
         return np.asarray(residual(jnp.asarray(x)), np.float64)
 
+    def scipy_fit(x):
+        # diff_step: scipy's default step (~1e-8 relative) is below float32 resolution, so its
+        # finite differences would be 0 and it would stop at the guess; 1e-3 is a fair choice.
+        return scipy.optimize.least_squares(fun, x, jac="2-point", bounds=(lo, hi), xtol=1e-6,
+                                            ftol=1e-9, gtol=1e-9, diff_step=a.diff_step)
+
     t = time.perf_counter()
-    # diff_step: scipy's default step (~1e-8 relative) is below float32 resolution, so its
-    # finite differences would be 0 and it would stop at the guess; 1e-3 is a fair choice.
-    sp = scipy.optimize.least_squares(fun, x0, jac="2-point", bounds=(lo, hi), xtol=1e-6,
-                                      ftol=1e-9, gtol=1e-9, diff_step=a.diff_step)
+    sp = scipy_fit(x0)
     scipy_s = time.perf_counter() - t
     sp_d, sp_a = 1.0 / sp.x[0], float(np.exp(sp.x[1]))
+    one_fev = nfev[0]
+    # The same global strategy as fit_focus: the guess plus starts - 1 points evenly spaced in u
+    # inside the bounds (each at the guess's aperture), every one solved to tolerance, the best
+    # kept. (fit_focus solves them on a 4x downsampled copy first; scipy gets full resolution.)
+    grid = lo[0] + (hi[0] - lo[0]) * (np.arange(a.starts - 1) + 0.5) / (a.starts - 1)
+    nfev[0] = 0
+    t = time.perf_counter()
+    fits = [sp] + [scipy_fit(np.array([u, x0[1]])) for u in grid]
+    scipy_multi_s = scipy_s + time.perf_counter() - t
+    best = min(fits, key=lambda r: r.cost)
+    mp_d, mp_a = 1.0 / best.x[0], float(np.exp(best.x[1]))
 
     if res is None:
         print(f"scipy 2-point FD (1 start): {scipy_s:.2f} s, {nfev[0]} fev, d={sp_d:.6g} "
@@ -108,7 +123,9 @@ def main(argv=None) -> None:
          str(int(res.steps))),
         ("  compile (first call minus median)", f"{compile_s:.1f}", "", "", ""),
         ("scipy least_squares 2-point FD (1 start)", f"{scipy_s:.2f}", f"{sp_d:.6g}",
-         f"{sp_a:.6g}", f"{nfev[0]} fev"),
+         f"{sp_a:.6g}", f"{one_fev} fev"),
+        (f"scipy least_squares 2-point FD ({a.starts} starts, best kept)", f"{scipy_multi_s:.2f}",
+         f"{mp_d:.6g}", f"{mp_a:.6g}", f"{one_fev + nfev[0]} fev"),
     ]
     header = ("method", "seconds", "focus_distance", "aperture_radius", "steps")
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
@@ -120,7 +137,8 @@ def main(argv=None) -> None:
             f"truth d={truth['focus_distance']} A={truth['aperture_radius']}, guess "
             f"d={guess['focus_distance']} A={guess['aperture_radius']}; jax x64="
             f"{jax.config.jax_enable_x64}\n\n" + "\n".join(lines) +
-            f"\n\nscipy (1 start) / dofjax ({a.starts} starts): {ratio:.2f}x\n"
+            f"\n\nscipy (1 start) / dofjax ({a.starts} starts): {ratio:.2f}x; scipy ({a.starts} "
+            f"starts) / dofjax ({a.starts} starts): {scipy_multi_s / ours:.2f}x\n"
             f"Targets: <= 1 s per fit, compile <= 20 s, >= 10x faster than scipy FD.\n")
     print(text)
     os.makedirs(os.path.dirname(os.path.abspath(a.out)), exist_ok=True)

@@ -66,6 +66,8 @@ _MIN_VISIBLE_COC = 0.25
 _APERTURE_GRID = 6
 # Internal bound fraction closer than this to 0 or 1 counts as "at the bound".
 _AT_BOUND = 1e-3
+# Multi-start end points closer than this (max norm of the solver coordinates) are one minimum.
+_SAME_END = 1e-3
 
 
 class FitResult(eqx.Module):
@@ -177,21 +179,24 @@ class _Data(eqx.Module):
 
 
 class _TrustRegion(optx.ClassicalTrustRegion):
-    """optimistix's classical trust region, with a rounding floor.
+    """optimistix's classical trust region, with a rounding floor and a scaled first damping.
 
     At the minimum of a noise-free target the loss is at float rounding level and a step can
     raise it by rounding alone; LM rejected such steps five times in a row (shrinking its step
     each time) before one was accepted and the solve could stop. A step that raises the loss by
     no more than `floor` (mean squared residual) or 1e-6 of it is accepted.
 
-    The initial step size (1 / damping) stays optimistix's 1. Starting at More's 1e-3 max
-    diag(J^T J) instead halved the steps near a minimum, but Gauss-Newton-sized first steps
-    from the multi-start level's (downsampling-biased) minimum jumped into other basins at
-    256x256 (86 % of 91 noise-free cases within 1e-3): the small first steps of damping 1 walk
-    along the valley instead.
+    The first damping (1 / step size) is `damping` x max diag(J^T J) at the initial point
+    (optimistix starts at damping 1 whatever the scale of J). The mean-scaled residuals have
+    J^T J ~ 1e-4, so damping 1 took the first ~6 steps of every solve at a few thousandths of
+    the Gauss-Newton step, growing 3.5x per step. Moré's 1e-3 x max diag jumped from the
+    multi-start level's (downsampling-biased) minimum into other basins at 256x256 (86 % of 91
+    noise-free cases within 1e-3); 1 x max diag (a first step about half Gauss-Newton's) keeps
+    90 % and takes 8 instead of 12 steps from a guess far from the minimum.
     """
 
     floor: Array = eqx.field(default_factory=lambda: jnp.array(0.0))
+    damping: float = 1.0
 
     def step(self, first_step, y, y_eval, f_info, f_eval_info, state):
         step_size, accept, result, state = super().step(
@@ -199,6 +204,12 @@ class _TrustRegion(optx.ClassicalTrustRegion):
         prev = jnp.sum(jnp.square(f_info.residual))
         new = jnp.sum(jnp.square(f_eval_info.residual))
         level = new <= prev + jnp.maximum(self.floor, 1e-6 * prev)
+        # (the first step evaluates the initial point: f_eval_info.jac is J there)
+        cols = jax.vmap(f_eval_info.jac.mv)(jnp.eye(y.shape[0], dtype=y.dtype))
+        scale = jnp.max(jnp.sum(jnp.square(cols), axis=1))
+        first = 1.0 / jnp.maximum(self.damping * scale, jnp.finfo(y.dtype).tiny)
+        step_size = jnp.where(first_step, first, step_size)
+        state = eqx.tree_at(lambda s: s.step_size, state, step_size)
         return step_size, accept | (level & ~first_step), result, state
 
 
@@ -457,8 +468,24 @@ def _fit_core(data, coarse, camera, camera_c, param, y_starts, u_scene, delta0, 
         # Every start again at full resolution, a few steps each and one after the other (each
         # stops when it has converged; vmapped, all would wait for the slowest).
         spec2 = dataclasses.replace(spec, max_steps=spec.screen_steps)
-        ys, loss, steps2, ok = jax.lax.map(
-            lambda y: _solve(y, data, camera, param, spec2, spec.model, delta0, r1, a1), ys)
+        # Starts that ended in the same coarse minimum are screened once: the copies keep
+        # their coarse end point and drop out of the pick (loss +inf).
+        near = jnp.max(jnp.abs(ys[:, None] - ys[None]), axis=-1) < _SAME_END
+        dup = jnp.any(jnp.tril(near, -1), axis=1)
+
+        def screen(y_dup):
+            y, is_dup = y_dup
+
+            def solve(_):
+                return _solve(y, data, camera, param, spec2, spec.model, delta0, r1, a1)
+
+            def skip(_):
+                return y, jnp.asarray(jnp.inf, loss.dtype), jnp.zeros((), steps.dtype), \
+                    jnp.asarray(False)
+
+            return jax.lax.cond(is_dup, skip, solve, None)
+
+        ys, loss, steps2, ok = jax.lax.map(screen, (ys, dup))
         steps = steps + steps2
     ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(ys)
     best, alt, has_alt = _pick(ul_end[:, 0], loss, u_scene)
@@ -791,6 +818,12 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         dict(starts=(starts, 1), max_steps=(max_steps, 1), start_steps=(start_steps, 1),
              screen_steps=(screen_steps, 0)))
     dtype = jnp.result_type(float)
+    x64 = dtype == jnp.float64
+    for key, value in (("rtol", rtol), ("atol", atol)):
+        if value is not None and not (isinstance(value, (int, float)) and value >= 0):
+            raise ValueError(f"{key}: must be a number >= 0 or None, got {value!r}")
+    rtol = (1e-8 if x64 else 1e-6) if rtol is None else rtol
+    atol = (1e-10 if x64 else 1e-8) if atol is None else atol
     free = tuple(i for i, n in enumerate(PARAMS) if n not in fixed)
     u_lo, u_hi = 1.0 / d_bounds[1], 1.0 / d_bounds[0]
     la_lo, la_hi = math.log(a_bounds[0]), math.log(a_bounds[1])
@@ -960,8 +993,8 @@ def fit_focus(
     mask: ArrayLike | None = None,
     fixed: Sequence[str] | str = (),
     starts: int = 8,
-    rtol: float = 1e-8,
-    atol: float = 1e-10,
+    rtol: float | None = None,
+    atol: float | None = None,
     max_steps: int = 100,
     start_steps: int = 30,
     screen_steps: int = 10,
@@ -1003,10 +1036,11 @@ def fit_focus(
         rtol, atol: optimistix tolerances for the final (full-resolution) solve: a step ends it
             when it moves the solver's internal coordinates (sine-mapped u and log A) by less
             than atol + rtol |y| and every (mean-scaled) residual by less than atol + rtol |r|
-            (max norms). The defaults are below float32 resolution for a coordinate near 0
-            (the middle of its bounds), so a noisy float32 fit may end at max_steps with
-            converged=False at its (correct) minimum; looser tolerances risk stopping early on
-            the small damped first steps of LM.
+            (max norms). None: 1e-6 and 1e-8 in float32, 1e-8 and 1e-10 in float64. float32
+            needs the looser pair: at the minimum of a noisy target each LM step moves y by
+            rounding (~1e-7 relative) and the residuals by a few eps of the pixel values, so
+            the float64 pair ended 41 of 100 noisy 256x256 fits at max_steps, flagged not
+            converged, at the right minimum.
         max_steps: per polish solve; start_steps: per multi-start solve (at tolerance 1e-4).
         screen_steps: when the multi-start ran on a downsampled copy, every start's end point
             is refined at full resolution for up to this many steps (tolerance 1e-4) and the
