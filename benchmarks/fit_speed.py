@@ -114,7 +114,7 @@ def main(argv=None) -> None:
     mp_d, mp_a = 1.0 / best.x[0], float(np.exp(best.x[1]))
 
     if res is None:
-        print(f"scipy 2-point FD (1 start): {scipy_s:.2f} s, {nfev[0]} fev, d={sp_d:.6g} "
+        print(f"scipy 2-point FD (1 start): {scipy_s:.2f} s, {one_fev} fev, d={sp_d:.6g} "
               f"A={sp_a:.6g}")
         return
     rows = [

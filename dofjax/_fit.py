@@ -17,7 +17,9 @@ How the fit works:
   passes only), so a guess far below the true aperture (an image that looks sharp: no
   information about focus) does not strand the starts. The best start and the best start on the
   *other side* of the scene's median inverse depth are then polished at full resolution, one
-  after the other (the second only if it exists).
+  after the other (the second only if it exists). Before the pick, every distinct end point is
+  refined a few steps on each finer pyramid level and then at full resolution (`_screen`): the
+  pick is made on the full-resolution loss.
 - Cost per solver step: the residual's JVP is a product with a Jacobian materialised once per
   evaluation by `jax.jacfwd` (`_autodiff.dense_jacobian`), so optimistix's linearisations (one per
   column, the predicted reduction, every rejected step) never run the model again.
@@ -39,6 +41,7 @@ import dataclasses
 import functools
 import inspect
 import math
+import numbers
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -152,10 +155,9 @@ class _Spec:
     rtol: float
     atol: float
     max_steps: int
-    coarse: bool  # the multi-start runs on a downsampled copy
-    factors: tuple[int, ...]  # downsampling factors of the pyramid levels, coarsest first
+    factors: tuple[int, ...]  # pyramid levels' downsampling factors, coarsest first (): none
     start_steps: int  # max steps per multi-start solve
-    screen_steps: int  # max steps per full-resolution screening solve of every start (0: none)
+    screen_steps: int  # max steps per screening solve of every start on each finer level (0: none)
     robust_rounds: int
 
 
@@ -205,11 +207,14 @@ class _TrustRegion(optx.ClassicalTrustRegion):
         prev = jnp.sum(jnp.square(f_info.residual))
         new = jnp.sum(jnp.square(f_eval_info.residual))
         level = new <= prev + jnp.maximum(self.floor, 1e-6 * prev)
-        # (the first step evaluates the initial point: f_eval_info.jac is J there)
-        cols = jax.vmap(f_eval_info.jac.mv)(jnp.eye(y.shape[0], dtype=y.dtype))
-        scale = jnp.max(jnp.sum(jnp.square(cols), axis=1))
-        first = 1.0 / jnp.maximum(self.damping * scale, jnp.finfo(y.dtype).tiny)
-        step_size = jnp.where(first_step, first, step_size)
+
+        def first(_):  # the first step evaluates the initial point: f_eval_info.jac is J there
+            cols = jax.vmap(f_eval_info.jac.mv)(jnp.eye(y.shape[0], dtype=y.dtype))
+            scale = jnp.max(jnp.sum(jnp.square(cols), axis=1))
+            return 1.0 / jnp.maximum(self.damping * scale, jnp.finfo(y.dtype).tiny)
+
+        step_size = jax.lax.cond(first_step, lambda _: first(_).astype(step_size.dtype),
+                                 lambda _: step_size, None)
         state = eqx.tree_at(lambda s: s.step_size, state, step_size)
         return step_size, accept | (level & ~first_step), result, state
 
@@ -493,13 +498,14 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
     # Every start is solved (vmapped, loose tolerance): picking the best grid points and solving
     # only those lost 2 of 12 noise-free cases at 64x64 to wrong basins (0 of 12 this way).
     ys, loss, steps, ok = _solve_many(y_starts, src, cam1, param, spec1, model1, delta0, r1, a1)
-    if spec.coarse and spec.screen_steps > 0:
+    if spec.factors and spec.screen_steps > 0:
         # Coarse to fine: every start is refined on each finer level of the pyramid, then at
         # full resolution, and the pair to polish is picked there. The multi-start level's
         # loss is biased where the blur is about a pixel (4x4 pooling leaves almost no trace
         # of it), and one jump from it straight to full resolution stayed in the wrong basin
-        # in 9 of 91 noise-free 256x256 cases; through the 128x128 level 5 of those 9 reach
-        # the truth.
+        # in 9 of 91 noise-free 256x256 cases. Through the 128x128 level a prototype reached
+        # the truth in 5 of those 9, but the 100-case suite with this code is still at 90 %
+        # (5 other cases go wrong): see benchmarks/README.md.
         dup = jnp.zeros(ys.shape[0], bool)
         for d_g, cam_g, model_g in stages[1:]:
             ys, loss, steps, ok, dup = _screen(ys, loss, steps, dup, d_g, cam_g, param, spec,
@@ -628,10 +634,12 @@ def _depth_weight(depth_a: np.ndarray, mask) -> np.ndarray:
     return weight
 
 
-def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, batch, counts):
+def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, batch, counts,
+              tolerances):
     """All the checks that must happen before any solver runs. Returns numpy arrays.
 
-    `counts` maps an integer option's name to (value, least allowed value)."""
+    `counts` maps an integer option's name to (value, least allowed value), `tolerances` a
+    tolerance's name to its value (a real >= 0, or None for the default)."""
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a dofjax.Camera, got {type(camera).__name__}")
     if solver not in SOLVERS:
@@ -641,6 +649,10 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
     for key, (value, least) in counts.items():
         if isinstance(value, bool) or not isinstance(value, int) or value < least:
             raise ValueError(f"{key}: must be an integer >= {least}, got {value!r}")
+    for key, value in tolerances.items():
+        if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Real)
+                                  or not value >= 0):
+            raise ValueError(f"{key}: must be a number >= 0 or None, got {value!r}")
     fixed = (fixed,) if isinstance(fixed, str) else tuple(fixed)
     for name in fixed:
         if name not in PARAMS:
@@ -833,12 +845,9 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
     tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds = _validate(
         target, rgb, depth, camera, mask, bounds, fixed, solver, loss, batch,
         dict(starts=(starts, 1), max_steps=(max_steps, 1), start_steps=(start_steps, 1),
-             screen_steps=(screen_steps, 0)))
+             screen_steps=(screen_steps, 0)), dict(rtol=rtol, atol=atol))
     dtype = jnp.result_type(float)
     x64 = dtype == jnp.float64
-    for key, value in (("rtol", rtol), ("atol", atol)):
-        if value is not None and not (isinstance(value, (int, float)) and value >= 0):
-            raise ValueError(f"{key}: must be a number >= 0 or None, got {value!r}")
     rtol = (1e-8 if x64 else 1e-6) if rtol is None else rtol
     atol = (1e-10 if x64 else 1e-8) if atol is None else atol
     free = tuple(i for i, n in enumerate(PARAMS) if n not in fixed)
@@ -901,8 +910,7 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
     spec = _Spec(
         model=model, level_models=level_models, solver=solver, loss=loss,
         auto_scale=(loss != "l2" and loss_scale is None), free=free, rtol=float(rtol),
-        atol=float(atol), max_steps=int(max_steps), coarse=f > 1, factors=factors,
-        robust_rounds=robust_rounds,
+        atol=float(atol), max_steps=int(max_steps), factors=factors, robust_rounds=robust_rounds,
         start_steps=int(start_steps), screen_steps=int(screen_steps))
     data = _Data(target=jnp.asarray(tgt, dtype), rgb=jnp.asarray(rgb_a, dtype),
                  depth=jnp.asarray(depth_a, dtype), weight=jnp.asarray(weight, dtype),
@@ -1067,10 +1075,10 @@ def fit_focus(
             the float64 pair ended 41 of 100 noisy 256x256 fits at max_steps, flagged not
             converged, at the right minimum.
         max_steps: per polish solve; start_steps: per multi-start solve (at tolerance 1e-4).
-        screen_steps: when the multi-start ran on a downsampled copy, every start's end point
-            is refined at full resolution for up to this many steps (tolerance 1e-4) and the
-            pair to polish is picked by the full-resolution loss (0: picked at the multi-start
-            level). The downsampled loss is biased at small CoC (a blur of a pixel or less
+        screen_steps: when the multi-start ran on a downsampled copy, every distinct start's
+            end point is refined for up to this many steps (tolerance 1e-4) on each finer
+            pyramid level and then at full resolution, and the pair to polish is picked by the
+            full-resolution loss (0: picked at the multi-start level). The downsampled loss is biased at small CoC (a blur of a pixel or less
             leaves almost no trace after 4x4 pooling), and its ranking picked the wrong basin
             in 19 of 91 noise-free 256x256 cases.
         coarse_size: the multi-start runs on the image box-downsampled by 2^L, the largest factor

@@ -38,7 +38,7 @@ def _default_model(rgb, depth, camera, mask, bounds, window, max_window, defocus
         # fit_focus's own validation and default bounds (the sharp rgb stands in for the target;
         # the caller has checked it already, so no message names the wrong argument).
         _, _, depth_a, weight, _, d_bounds, a_bounds = _validate(
-            rgb, rgb, depth, camera, mask, bounds, (), "lm", "l2", False, {})
+            rgb, rgb, depth, camera, mask, bounds, (), "lm", "l2", False, {}, {})
         u_bounds = (1.0 / d_bounds[1], 1.0 / d_bounds[0])
         window = min(_reach(depth_a[weight > 0], float(camera.pixel_scale), u_bounds, a_bounds[1]),
                      max_window)

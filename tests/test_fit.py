@@ -289,3 +289,5 @@ def test_bad_bounds_and_options():
     _bad("starts: must be", starts=0)
     _bad("screen_steps: must be an integer >= 0", screen_steps=-1)
     _bad("max_steps: must be an integer >= 1", max_steps=2.5)
+    _bad("rtol: must be a number >= 0", rtol=-1e-6)
+    _bad("atol: must be a number >= 0", atol=float("nan"))
