@@ -71,6 +71,24 @@ def test_more_aperture_never_sharper(rgb, a, factor, seed):
     assert e2 <= e1 * (1 + 1e-9)
 
 
+@pytest.mark.xfail(
+    strict=True, raises=AssertionError,
+    reason="known defect (see test_more_aperture_never_sharper): a pinned counterexample, so the "
+    "random test's XPASS (8 examples rarely hit a level boundary) is not read as a fix; this "
+    "starts failing the suite (XPASS, strict) the day the level blend is replaced.",
+)
+def test_more_aperture_never_sharper_pinned_counterexample():
+    # Found by a dense aperture sweep: at z = 4 the slanted plane's |c| crosses a level boundary
+    # between these two apertures and the gradient energy rises by 1.6 %.
+    cam = camera()
+    rgb = np.random.default_rng(1).random((N, N, 3))
+    depth = np.full((N, N), 4.0) + np.linspace(0, 0.3, N)[None, :]
+    f = defocus_fn(rgb, depth, cam, window=4)
+    e1 = grad_energy(np.asarray(f(2.0, 0.3373)))
+    e2 = grad_energy(np.asarray(f(2.0, 0.3434)))
+    assert e2 <= e1 * (1 + 1e-9)
+
+
 @SETTINGS
 @given(st.integers(0, 2**31 - 1), st.floats(-4.0, 4.0))
 def test_energy_conserved_away_from_borders(seed, c):
