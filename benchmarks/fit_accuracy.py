@@ -113,7 +113,8 @@ def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None) -> dict:
 
     sharp = (rgbd, guess) if rgbd is not None else (case["rgb"], case["depth"], guess)
     t = time.perf_counter()
-    extra = {} if args.screen_steps is None else {"screen_steps": args.screen_steps}
+    extra = {k: getattr(args, k) for k in ("screen_steps", "scan_points")
+             if getattr(args, k) is not None}
     res = dofjax.fit_focus(target, *sharp, bounds=bounds, mask=mask, window=args.window,
                            starts=args.starts, **extra)
     seconds = time.perf_counter() - t
@@ -177,7 +178,8 @@ def _header(args, what: str, sharp_spp: int | None = None) -> str:
     return (f"# fit_focus accuracy: {what}\n\n"
             f"{args.size}x{args.size}, data_gen seed {args.seed}, window {args.window:g} px, "
             f"starts {args.starts}, screen_steps "
-            f"{'default' if args.screen_steps is None else args.screen_steps}, "
+            f"{'default' if args.screen_steps is None else args.screen_steps}, scan_points "
+            f"{'default' if args.scan_points is None else args.scan_points}, "
             f"coc_reach x{args.coc_reach:g}, sharp spp "
             f"{sharp_spp or args.sharp_spp}, "
             f"jax x64={jax.config.jax_enable_x64}, {platform.machine()} "
@@ -693,6 +695,8 @@ def main(argv=None) -> None:
     p.add_argument("--starts", type=int, default=8, help="fit_focus multi-starts")
     p.add_argument("--screen-steps", type=int, default=None,
                    help="fit_focus screen_steps (default: the library's)")
+    p.add_argument("--scan-points", type=int, default=None,
+                   help="fit_focus scan_points (default: the library's)")
     p.add_argument("--sharp-spp", type=int, default=1, help="samples per pixel of the sharp render")
     p.add_argument("--noise-scenes", type=int, default=3)
     p.add_argument("--draws", type=int, default=50)

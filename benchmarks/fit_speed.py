@@ -39,6 +39,8 @@ def main(argv=None) -> None:
     p.add_argument("--scipy-only", action="store_true", help="skip the dofjax fit")
     p.add_argument("--screen-steps", type=int, default=None,
                    help="fit_focus screen_steps (default: the library's)")
+    p.add_argument("--scan-points", type=int, default=None,
+                   help="fit_focus scan_points (default: the library's)")
     p.add_argument("--out", default=os.path.join(HERE, "results", "fit_speed.md"))
     p.add_argument("--method", default="sliced", choices=("sliced", "pyramid"),
                    help="defocus method for the target, the fit and the scipy residual")
@@ -58,8 +60,11 @@ def main(argv=None) -> None:
               defocus_options={"method": a.method})
     if a.screen_steps is not None:
         kw["screen_steps"] = a.screen_steps
-    screen = kw.get("screen_steps", inspect.signature(dofjax.fit_focus).parameters[
-        "screen_steps"].default)
+    if a.scan_points is not None:
+        kw["scan_points"] = a.scan_points
+    defaults = inspect.signature(dofjax.fit_focus).parameters
+    screen = kw.get("screen_steps", defaults["screen_steps"].default)
+    scan = kw.get("scan_points", defaults["scan_points"].default)
 
     t = time.perf_counter()
     res = None if a.scipy_only else dofjax.fit_focus(target, rgb, depth, cam, **kw)
@@ -133,7 +138,7 @@ def main(argv=None) -> None:
     ratio = scipy_s / ours
     text = (f"# fit speed, {a.size}x{a.size} quads.json, window {a.window} px, defocus method {a.method}, "
             f"{os.cpu_count()} CPUs (load average {os.getloadavg()[0]:.1f}), screen_steps "
-            f"{screen}\n\n"
+            f"{screen}, scan_points {scan}\n\n"
             f"truth d={truth['focus_distance']} A={truth['aperture_radius']}, guess "
             f"d={guess['focus_distance']} A={guess['aperture_radius']}; jax x64="
             f"{jax.config.jax_enable_x64}\n\n" + "\n".join(lines) +

@@ -71,6 +71,8 @@ _APERTURE_GRID = 6
 _AT_BOUND = 1e-3
 # Multi-start end points closer than this (max norm of the solver coordinates) are one minimum.
 _SAME_END = 1e-3
+# Local minima of the full-resolution u scan (`scan_points`) that join the full-resolution screen.
+_SCAN_KEEP = 3
 
 
 class FitResult(eqx.Module):
@@ -158,6 +160,7 @@ class _Spec:
     factors: tuple[int, ...]  # pyramid levels' downsampling factors, coarsest first (): none
     start_steps: int  # max steps per multi-start solve
     screen_steps: int  # max steps per screening solve of every start on each finer level (0: none)
+    scan_points: int  # full-resolution scan of u, forward passes only (0: none)
     robust_rounds: int
 
 
@@ -433,6 +436,29 @@ def _pick(u_end, losses, u_scene):
     return best, jnp.where(jnp.any(other), alt, best), jnp.any(other)
 
 
+def _dedupe(ys, dup):
+    """`dup` with every point that is within `_SAME_END` of an earlier non-duplicate marked."""
+    near = jnp.max(jnp.abs(ys[:, None] - ys[None]), axis=-1) < _SAME_END
+    return dup | jnp.any(jnp.tril(near, -1) & ~dup[None], axis=1)
+
+
+def _losses(ys, skip, data, camera, param, spec, delta0):
+    """Full-resolution loss (sum of squared residuals) at each point, one forward pass each, one
+    after the other; +inf where `skip`."""
+
+    def one(y_skip):
+        y, s = y_skip
+
+        def value(_):
+            r = _residual_ul(param.to_ul(y, spec.free), data, camera, spec.model, spec.loss,
+                             delta0)
+            return jnp.sum(r * r)
+
+        return jax.lax.cond(s, lambda _: jnp.asarray(jnp.inf, data.target.dtype), value, None)
+
+    return jax.lax.map(one, (ys, skip))
+
+
 def _screen(ys, loss, steps, dup, data, camera, param, spec, model, delta0, rtol, atol):
     """Every start refined on one (finer) level for up to spec.screen_steps steps, one after the
     other (each stops when it has converged; vmapped, all would wait for the slowest).
@@ -441,8 +467,7 @@ def _screen(ys, loss, steps, dup, data, camera, param, spec, model, delta0, rtol
     coarser level (`dup`), are refined once: the copies keep their point and drop out of the
     pick (loss +inf). Returns (ys, loss, steps, ok, dup)."""
     spec2 = dataclasses.replace(spec, max_steps=spec.screen_steps)
-    near = jnp.max(jnp.abs(ys[:, None] - ys[None]), axis=-1) < _SAME_END
-    dup = dup | jnp.any(jnp.tril(near, -1) & ~dup[None], axis=1)
+    dup = _dedupe(ys, dup)
 
     def one(y_dup):
         y, is_dup = y_dup
@@ -458,6 +483,27 @@ def _screen(ys, loss, steps, dup, data, camera, param, spec, model, delta0, rtol
 
     ys, loss, steps2, ok = jax.lax.map(one, (ys, dup))
     return ys, loss, steps + steps2, ok, dup
+
+
+def _scan(y_scan, data, camera, param, spec, delta0):
+    """The best local minima of the full-resolution loss along a grid of u: (ys, valid).
+
+    `y_scan` holds points evenly spaced in u across its bounds (sorted), each with its best
+    aperture at the multi-start level. Their full-resolution losses (forward passes only) are
+    compared along the grid, and the `_SCAN_KEEP` lowest local minima are returned (`valid` is
+    False for slots without one). At 256x256 the true basin in u is often narrower than the
+    spacing of the 8 starts, and the downsampled levels' minima lie elsewhere when the blur is
+    a pixel or two: in the 100-case noise-free suite, 5 cases ended in another basin and were
+    reported "ok" (see benchmarks/README.md).
+    """
+
+    values = _losses(y_scan, jnp.zeros(y_scan.shape[0], bool), data, camera, param, spec, delta0)
+    inf = jnp.full((1,), jnp.inf, values.dtype)
+    left = jnp.concatenate([inf, values[:-1]])
+    right = jnp.concatenate([values[1:], inf])
+    key = jnp.where((values <= left) & (values <= right) & jnp.isfinite(values), values, jnp.inf)
+    _, idx = jax.lax.top_k(-key, min(_SCAN_KEEP, values.shape[0]))
+    return y_scan[idx], jnp.isfinite(key[idx])
 
 
 def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, spec: _Spec):
@@ -476,17 +522,19 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
     # every start waits for the slowest: loose tolerances and few steps.
     r1, a1 = max(rtol, 1e-4), max(atol, 1e-8)
     spec1 = dataclasses.replace(spec, max_steps=min(spec.max_steps, spec.start_steps))
-    y_starts, y_apertures = y_starts
+    y_starts, y_apertures, y_scan = y_starts
 
     def grid_loss(y):
         r = _residual_ul(param.to_ul(y, spec.free), src, cam1, model1, spec.loss, delta0)
         return jnp.sum(r * r)
 
-    if y_apertures is not None:
+    def with_best_aperture(ys):
         # Each start's aperture is the best of a grid in log A (plus the guess) by the loss at
         # the multi-start level: from an aperture far below the truth every pixel looks sharp,
         # the loss is flat in the focus and the start cannot find the basin (the noise study in
         # benchmarks/fit_accuracy.py lost 27 of 28 such fits before this).
+        if y_apertures is None:
+            return ys
         ai = spec.free.index(1)
 
         def best_aperture(y):
@@ -494,7 +542,15 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
                 y_apertures)
             return y_apertures[jnp.argmin(jax.vmap(grid_loss)(cand))]
 
-        y_starts = y_starts.at[:, ai].set(jax.lax.map(best_aperture, y_starts))
+        return ys.at[:, ai].set(jax.lax.map(best_aperture, ys))
+
+    y_starts = with_best_aperture(y_starts)
+    extra = None
+    if y_scan is not None:
+        extra = _scan(with_best_aperture(y_scan), data, camera, param, spec, delta0)
+        if not spec.factors:  # the multi-start runs at full resolution: they join it
+            y_starts = jnp.concatenate([y_starts, jnp.where(extra[1][:, None], extra[0],
+                                                            y_starts[:1])])
     # Every start is solved (vmapped, loose tolerance): picking the best grid points and solving
     # only those lost 2 of 12 noise-free cases at 64x64 to wrong basins (0 of 12 this way).
     ys, loss, steps, ok = _solve_many(y_starts, src, cam1, param, spec1, model1, delta0, r1, a1)
@@ -503,11 +559,23 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
         # full resolution, and the pair to polish is picked there. The multi-start level's
         # loss is biased where the blur is about a pixel (4x4 pooling leaves almost no trace
         # of it), and one jump from it straight to full resolution stayed in the wrong basin
-        # in 9 of 91 noise-free 256x256 cases. Through the 128x128 level a prototype reached
-        # the truth in 5 of those 9, but the 100-case suite with this code is still at 90 %
-        # (5 other cases go wrong): see benchmarks/README.md.
+        # in 9 of 91 noise-free 256x256 cases. The full-resolution scan's local minima join
+        # the last screen without passing through the coarse levels, whose minima can sit
+        # several full-resolution basins away (see `_scan`). Of those and the distinct coarse
+        # end points, only the `_SCAN_KEEP` with the lowest full-resolution loss are screened
+        # there (a screen costs up to screen_steps Jacobians; the scan's loss one forward pass).
         dup = jnp.zeros(ys.shape[0], bool)
-        for d_g, cam_g, model_g in stages[1:]:
+        for g, (d_g, cam_g, model_g) in enumerate(stages[1:]):
+            if extra is not None and g == len(stages) - 2:
+                k = extra[0].shape[0]
+                ys = jnp.concatenate([ys, extra[0]])
+                loss = jnp.concatenate([loss, jnp.full((k,), jnp.inf, loss.dtype)])
+                steps = jnp.concatenate([steps, jnp.zeros((k,), steps.dtype)])
+                ok = jnp.concatenate([ok, jnp.zeros((k,), bool)])
+                dup = _dedupe(ys, jnp.concatenate([dup, ~extra[1]]))
+                full = _losses(ys, dup, d_g, cam_g, param, spec, delta0)
+                _, keep = jax.lax.top_k(-full, min(_SCAN_KEEP, full.shape[0]))
+                dup = dup | ~jnp.zeros(full.shape[0], bool).at[keep].set(True)
             ys, loss, steps, ok, dup = _screen(ys, loss, steps, dup, d_g, cam_g, param, spec,
                                                model_g, delta0, r1, a1)
     ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(ys)
@@ -840,12 +908,14 @@ def _depths_seen(depth_a: np.ndarray, weight: np.ndarray, extras: _Extras | None
 
 def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, batch,
              rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds, window,
-             max_window, defocus_options, start_steps, screen_steps, name="fit_focus"):
+             max_window, defocus_options, start_steps, screen_steps, scan_points,
+             name="fit_focus"):
     rgb, depth, camera, extras = _unpack(name, rgb, depth, camera, model)
     tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds = _validate(
         target, rgb, depth, camera, mask, bounds, fixed, solver, loss, batch,
         dict(starts=(starts, 1), max_steps=(max_steps, 1), start_steps=(start_steps, 1),
-             screen_steps=(screen_steps, 0)), dict(rtol=rtol, atol=atol))
+             screen_steps=(screen_steps, 0), scan_points=(scan_points, 0)),
+        dict(rtol=rtol, atol=atol))
     dtype = jnp.result_type(float)
     x64 = dtype == jnp.float64
     rtol = (1e-8 if x64 else 1e-6) if rtol is None else rtol
@@ -881,10 +951,17 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
     if 1 in free:
         fracs = np.concatenate([[frac0[1]], (np.arange(_APERTURE_GRID) + 0.5) / _APERTURE_GRID])
         y_apertures = jnp.asarray(logit(fracs), dtype)
-    y_starts = (y_starts, y_apertures)
+    f = _levels(depth_a.shape, coarse_size)
+    # the full-resolution scan of u (`_scan`): evenly spaced in u, the guess's aperture (each
+    # point then takes its best one, as the starts do)
+    y_scan = None
+    if 0 in free and scan_points > 0 and (f == 1 or screen_steps > 0):
+        fracs = (np.arange(scan_points) + 0.5) / scan_points
+        y_scan = jnp.asarray(np.array([[logit(fu) if i == 0 else logit(frac0[1]) for i in free]
+                                       for fu in fracs]), dtype)
+    y_starts = (y_starts, y_apertures, y_scan)
     inv = 1.0 / depth_a[np.isfinite(depth_a) & (weight > 0)]
     u_scene = jnp.asarray(float(np.median(inv)), dtype)
-    f = _levels(depth_a.shape, coarse_size)
     # pyramid levels, coarsest first: the multi-start's, then (with a screen) every finer one
     factors, g = [], f
     while g > 1 and (screen_steps > 0 or not factors):
@@ -911,7 +988,8 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         model=model, level_models=level_models, solver=solver, loss=loss,
         auto_scale=(loss != "l2" and loss_scale is None), free=free, rtol=float(rtol),
         atol=float(atol), max_steps=int(max_steps), factors=factors, robust_rounds=robust_rounds,
-        start_steps=int(start_steps), screen_steps=int(screen_steps))
+        start_steps=int(start_steps), screen_steps=int(screen_steps),
+        scan_points=int(scan_points))
     data = _Data(target=jnp.asarray(tgt, dtype), rgb=jnp.asarray(rgb_a, dtype),
                  depth=jnp.asarray(depth_a, dtype), weight=jnp.asarray(weight, dtype),
                  extras=extras)
@@ -1031,6 +1109,7 @@ def fit_focus(
     max_steps: int = 100,
     start_steps: int = 30,
     screen_steps: int = 10,
+    scan_points: int = 24,
     coarse_size: int | None = 64,
     max_condition: float = 1e4,
     ambiguity_threshold: float = 9.0,
@@ -1081,6 +1160,13 @@ def fit_focus(
             full-resolution loss (0: picked at the multi-start level). The downsampled loss is biased at small CoC (a blur of a pixel or less
             leaves almost no trace after 4x4 pooling), and its ranking picked the wrong basin
             in 19 of 91 noise-free 256x256 cases.
+        scan_points: the loss at full resolution is evaluated (forward passes only) at this
+            many points evenly spaced in u = 1/d inside the bounds, each with its best aperture
+            from the multi-start level's grid, and the 3 lowest local minima along the scan
+            join the full-resolution screen (or, without a downsampled level, the
+            multi-start). The true basin is often narrower in u than the spacing of the
+            starts, and at a blur of a pixel or two the downsampled levels' minima lie in other
+            basins. 0: no scan.
         coarse_size: the multi-start runs on the image box-downsampled by 2^L, the largest factor
             keeping min(H, W) / 2^L >= coarse_size (None: always full resolution); the best
             start and the best one on the other side of the scene depth are then polished at
@@ -1107,7 +1193,8 @@ def fit_focus(
     """
     prep = _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, False,
                     rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds,
-                    window, max_window, defocus_options, start_steps, screen_steps)
+                    window, max_window, defocus_options, start_steps, screen_steps,
+                    scan_points)
     data, camera, cameras, param, y_starts, u_scene, delta0, spec = prep
     raw = _fit_jit(data, camera, cameras, param, y_starts, u_scene, delta0, spec)
     fixed_names = tuple(PARAMS[i] for i in range(2) if i not in spec.free)
@@ -1188,7 +1275,7 @@ def fit_focus_batch(
                     opts["atol"], opts["max_steps"], opts["model"], opts["coarse_size"],
                     opts["loss_scale"], opts["robust_rounds"], opts["window"],
                     opts["max_window"], opts["defocus_options"], opts["start_steps"],
-                    opts["screen_steps"], name="fit_focus_batch")
+                    opts["screen_steps"], opts["scan_points"], name="fit_focus_batch")
     data, camera, cameras, param, y_starts, u_scene, delta0, spec = prep
     devices = list(jax.devices() if devices is None else devices)
     mesh = Mesh(np.array(devices), ("batch",))

@@ -245,6 +245,41 @@ def test_coarse_depth_follows_the_light():
     assert np.isinf(z[1, 1])
 
 
+U_STAR, U_BROAD = 0.15, 0.8  # focus at 1 / u; inside BOUNDS_WELL (u from 0.01 to 1)
+BOUNDS_WELL = {"focus_distance": (1.0, 100.0), "aperture_radius": (0.005, 0.5)}
+
+
+def narrow_well_model(rgb, depth, camera):
+    """A loss with a narrow global minimum in u = 1/d at U_STAR (width 0.01, far narrower than
+    the spacing of 8 starts, 0.14) and a broad local one at U_BROAD; the aperture enters
+    separately. Residuals (target 0): 1 - exp(-((u - U_STAR) / 0.01)^2), u - U_BROAD,
+    log(A / 0.05)."""
+    u = 1.0 / camera.focus_distance
+    vals = jnp.stack([1.0 - jnp.exp(-jnp.square((u - U_STAR) / 0.01)), u - U_BROAD,
+                      jnp.log(camera.aperture_radius / 0.05)])
+    return jnp.zeros(rgb.shape, vals.dtype).at[0, 0].set(vals)
+
+
+@pytest.mark.parametrize("coarse_size", [None, 4])
+def test_scan_finds_a_basin_between_the_starts(coarse_size):
+    """The full-resolution scan of u finds the narrow global minimum that no start (the grid,
+    the guess) lies in: without it, the fit ends in the broad local minimum. With coarse_size 4
+    (16x16 image) the multi-start runs at 1/4 and the scan's minima join the full-resolution
+    screen; with None they join the multi-start."""
+    rgb, depth = scene()
+    rgb, depth = rgb[:16, :16], depth[:16, :16]
+    cam = Camera(width=16, height=16, fov=60.0, focus_distance=1.0 / 0.6, aperture_radius=0.02)
+    kw = dict(model=narrow_well_model, starts=8, bounds=BOUNDS_WELL, coarse_size=coarse_size)
+    target = jnp.zeros_like(rgb)
+    found = fit_focus(target, rgb, depth, cam, **kw)
+    # the well's minimum, pulled a little towards U_BROAD by the second residual
+    assert 1.0 / float(found.focus_distance) == pytest.approx(U_STAR, abs=0.005)
+    assert float(found.aperture_radius) == pytest.approx(0.05, rel=1e-4)
+    missed = fit_focus(target, rgb, depth, cam, scan_points=0, **kw)
+    assert 1.0 / float(missed.focus_distance) == pytest.approx(U_BROAD, abs=0.02)
+    assert float(found.loss) < 0.5 * float(missed.loss)  # 0.42 vs 1 (sums of squares)
+
+
 # --- bad input: ValueError before any solver runs ------------------------------------------
 
 
@@ -288,6 +323,7 @@ def test_bad_bounds_and_options():
     _bad("fixed: cannot fix both", fixed=("focus_distance", "aperture_radius"))
     _bad("starts: must be", starts=0)
     _bad("screen_steps: must be an integer >= 0", screen_steps=-1)
+    _bad("scan_points: must be an integer >= 0", scan_points=-1)
     _bad("max_steps: must be an integer >= 1", max_steps=2.5)
     _bad("rtol: must be a number >= 0", rtol=-1e-6)
     _bad("atol: must be a number >= 0", atol=float("nan"))
