@@ -442,6 +442,23 @@ def _dedupe(ys, dup):
     return dup | jnp.any(jnp.tril(near, -1) & ~dup[None], axis=1)
 
 
+def _lowest_apart(values, ys, param, spec):
+    """Mask of the `_SCAN_KEEP` points of lowest finite `values` that lie at least half a scan
+    spacing apart in u (as a fraction of its bounds): a greedy pick, lowest first.
+
+    Coarse end points near a bound of u differ by more than `_SAME_END` in the solver's
+    coordinates (the sine map is flat there) while they are one minimum: without the spacing
+    they took all the places (a 256x256 highlights case)."""
+    frac = jax.vmap(lambda y: param.fraction(param.to_ul(y, spec.free))[0])(ys)
+    keep = jnp.zeros(values.shape[0], bool)
+    free = jnp.isfinite(values)
+    for _ in range(min(_SCAN_KEEP, values.shape[0])):
+        i = jnp.argmin(jnp.where(free, values, jnp.inf))
+        keep = keep.at[i].set(free[i])
+        free = free & (jnp.abs(frac - frac[i]) >= 0.5 / spec.scan_points)
+    return keep
+
+
 def _losses(ys, skip, data, camera, param, spec, delta0):
     """Full-resolution loss (sum of squared residuals) at each point, one forward pass each, one
     after the other; +inf where `skip`."""
@@ -562,8 +579,9 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
         # in 9 of 91 noise-free 256x256 cases. The full-resolution scan's local minima join
         # the last screen without passing through the coarse levels, whose minima can sit
         # several full-resolution basins away (see `_scan`). Of those and the distinct coarse
-        # end points, only the `_SCAN_KEEP` with the lowest full-resolution loss are screened
-        # there (a screen costs up to screen_steps Jacobians; the scan's loss one forward pass).
+        # end points, only the `_SCAN_KEEP` with the lowest full-resolution loss (and apart in
+        # u) are screened there: a screen costs up to screen_steps Jacobians, a loss one
+        # forward pass.
         dup = jnp.zeros(ys.shape[0], bool)
         for g, (d_g, cam_g, model_g) in enumerate(stages[1:]):
             if extra is not None and g == len(stages) - 2:
@@ -574,8 +592,7 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
                 ok = jnp.concatenate([ok, jnp.zeros((k,), bool)])
                 dup = _dedupe(ys, jnp.concatenate([dup, ~extra[1]]))
                 full = _losses(ys, dup, d_g, cam_g, param, spec, delta0)
-                _, keep = jax.lax.top_k(-full, min(_SCAN_KEEP, full.shape[0]))
-                dup = dup | ~jnp.zeros(full.shape[0], bool).at[keep].set(True)
+                dup = ~_lowest_apart(full, ys, param, spec)
             ys, loss, steps, ok, dup = _screen(ys, loss, steps, dup, d_g, cam_g, param, spec,
                                                model_g, delta0, r1, a1)
     ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(ys)
