@@ -18,8 +18,12 @@ How the fit works:
   information about focus) does not strand the starts. The best start and the best start on the
   *other side* of the scene's median inverse depth are then polished at full resolution, one
   after the other (the second only if it exists). Before the pick, every distinct end point is
-  refined a few steps on each finer pyramid level and then at full resolution (`_screen`): the
-  pick is made on the full-resolution loss.
+  refined a few steps on each finer pyramid level (`_screen`), then joined by the lowest local
+  minima of a scan of u at full resolution (`_scan`: forward passes only, each scan point with
+  its best aperture from the same grid); the 3 of lowest full-resolution loss, apart in u, are
+  refined there and the pick is made on the full-resolution loss. The true basin in u can be
+  narrower than the starts' spacing, and when the blur is a pixel or two the downsampled
+  levels' minima lie in other basins: the scan is what finds it.
 - Cost per solver step: the residual's JVP is a product with a Jacobian materialised once per
   evaluation by `jax.jacfwd` (`_autodiff.dense_jacobian`), so optimistix's linearisations (one per
   column, the predicted reduction, every rejected step) never run the model again.
@@ -845,9 +849,14 @@ def _coarse_data(data: _Data, f: int) -> _Data:
     # CoC, not at its dim block's depth, while ordinary (LDR) textures keep the plain mean.
     # Weighting by the radiance itself fixed 5 highlight scenes of the 256x256 suite and lost 5
     # occluder/mirror ones.
+    # Pixels outside the mask (weight 0) neither set the percentile nor pull their block's depth
+    # (a clipped highlight masked out of the fit would otherwise still decide it); a block
+    # with no unmasked pixel keeps the plain mean.
     radiance = jnp.mean(jnp.abs(data.rgb), axis=-1)
-    floor = jnp.percentile(radiance, 90.0)
+    seen = data.weight > 0
+    floor = jnp.nanpercentile(jnp.where(seen, radiance, jnp.nan), 90.0)
     radiance = jnp.maximum(radiance, floor + jnp.finfo(radiance.dtype).tiny)
+    radiance = radiance * jnp.where(seen, 1.0, 1e-6)
     return _Data(target=_pool(data.target, f, 0), rgb=_pool(data.rgb, f, 0),
                  depth=_pool_depth(data.depth, f, radiance), weight=_pool(data.weight, f, 0),
                  extras=_coarse_extras(data.extras, f))
@@ -1180,10 +1189,13 @@ def fit_focus(
         scan_points: the loss at full resolution is evaluated (forward passes only) at this
             many points evenly spaced in u = 1/d inside the bounds, each with its best aperture
             from the multi-start level's grid, and the 3 lowest local minima along the scan
-            join the full-resolution screen (or, without a downsampled level, the
-            multi-start). The true basin is often narrower in u than the spacing of the
-            starts, and at a blur of a pixel or two the downsampled levels' minima lie in other
-            basins. 0: no scan.
+            join the coarse end points at the full-resolution screen, which refines the 3 of
+            lowest loss that lie half a scan spacing apart in u (without a downsampled level
+            they join the multi-start). The true basin is often narrower in u than the spacing
+            of the starts, and at a blur of a pixel or two the downsampled levels' minima lie
+            in other basins: at 256x256 the scan took the noise-free suite from 90 % to 98 %
+            of cases within 1e-3 at about the same fit time. 0: no scan (needs
+            screen_steps > 0 when the multi-start runs downsampled; ignored otherwise).
         coarse_size: the multi-start runs on the image box-downsampled by 2^L, the largest factor
             keeping min(H, W) / 2^L >= coarse_size (None: always full resolution); the best
             start and the best one on the other side of the scene depth are then polished at

@@ -243,6 +243,13 @@ def test_coarse_depth_follows_the_light():
     assert z[0, 1] == pytest.approx(4.0, rel=1e-6)
     assert z[1, 0] == pytest.approx(1.0 / np.mean([1.0, 0.5, 0.25, 0.125]), rel=1e-5)
     assert np.isinf(z[1, 1])
+    # masked out, the highlight no longer decides its block's depth: the 15 unmasked pixels do
+    # (the other blocks keep theirs)
+    masked = _Data(target=rgb, rgb=rgb, depth=depth, weight=jnp.ones((8, 8)).at[1, 2].set(0.0))
+    zm = np.asarray(_coarse_data(masked, 4).depth)
+    assert zm[0, 0] == pytest.approx(4.0, rel=1e-3)
+    np.testing.assert_allclose(zm[1:], z[1:], rtol=1e-6)
+    assert zm[0, 1] == pytest.approx(4.0, rel=1e-6)
 
 
 U_STAR, U_BROAD = 0.15, 0.8  # focus at 1 / u; inside BOUNDS_WELL (u from 0.01 to 1)
