@@ -75,7 +75,8 @@ _APERTURE_GRID = 6
 _AT_BOUND = 1e-3
 # Multi-start end points closer than this (max norm of the solver coordinates) are one minimum.
 _SAME_END = 1e-3
-# Local minima of the full-resolution u scan (`scan_points`) that join the full-resolution screen.
+# Local minima of the full-resolution u scan (`scan_points`) kept, and candidates (those and the
+# coarse end points) refined by the full-resolution screen.
 _SCAN_KEEP = 3
 
 
@@ -507,12 +508,12 @@ def _screen(ys, loss, steps, dup, data, camera, param, spec, model, delta0, rtol
 
 
 def _scan(y_scan, data, camera, param, spec, delta0):
-    """The best local minima of the full-resolution loss along a grid of u: (ys, valid).
+    """The best local minima of the full-resolution loss along a grid of u: (ys, valid, loss).
 
     `y_scan` holds points evenly spaced in u across its bounds (sorted), each with its best
     aperture at the multi-start level. Their full-resolution losses (forward passes only) are
-    compared along the grid, and the `_SCAN_KEEP` lowest local minima are returned (`valid` is
-    False for slots without one). At 256x256 the true basin in u is often narrower than the
+    compared along the grid, and the `_SCAN_KEEP` lowest local minima are returned with their
+    losses (`valid` is False, the loss +inf, for slots without one). At 256x256 the true basin in u is often narrower than the
     spacing of the 8 starts, and the downsampled levels' minima lie elsewhere when the blur is
     a pixel or two: in the 100-case noise-free suite, 5 cases ended in another basin and were
     reported "ok" (see benchmarks/README.md).
@@ -524,7 +525,7 @@ def _scan(y_scan, data, camera, param, spec, delta0):
     right = jnp.concatenate([values[1:], inf])
     key = jnp.where((values <= left) & (values <= right) & jnp.isfinite(values), values, jnp.inf)
     _, idx = jax.lax.top_k(-key, min(_SCAN_KEEP, values.shape[0]))
-    return y_scan[idx], jnp.isfinite(key[idx])
+    return y_scan[idx], jnp.isfinite(key[idx]), key[idx]
 
 
 def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, spec: _Spec):
@@ -570,7 +571,8 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
     if y_scan is not None:
         extra = _scan(with_best_aperture(y_scan), data, camera, param, spec, delta0)
         if not spec.factors:  # the multi-start runs at full resolution: they join it
-            y_starts = jnp.concatenate([y_starts, jnp.where(extra[1][:, None], extra[0],
+            y_extra, valid, _ = extra
+            y_starts = jnp.concatenate([y_starts, jnp.where(valid[:, None], y_extra,
                                                             y_starts[:1])])
     # Every start is solved (vmapped, loose tolerance): picking the best grid points and solving
     # only those lost 2 of 12 noise-free cases at 64x64 to wrong basins (0 of 12 this way).
@@ -589,13 +591,16 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
         dup = jnp.zeros(ys.shape[0], bool)
         for g, (d_g, cam_g, model_g) in enumerate(stages[1:]):
             if extra is not None and g == len(stages) - 2:
-                k = extra[0].shape[0]
-                ys = jnp.concatenate([ys, extra[0]])
+                y_extra, valid, extra_loss = extra
+                k = y_extra.shape[0]
+                dup_ends = _dedupe(ys, dup)
+                full = jnp.concatenate([_losses(ys, dup_ends, d_g, cam_g, param, spec, delta0),
+                                        extra_loss])
+                ys = jnp.concatenate([ys, y_extra])
                 loss = jnp.concatenate([loss, jnp.full((k,), jnp.inf, loss.dtype)])
                 steps = jnp.concatenate([steps, jnp.zeros((k,), steps.dtype)])
                 ok = jnp.concatenate([ok, jnp.zeros((k,), bool)])
-                dup = _dedupe(ys, jnp.concatenate([dup, ~extra[1]]))
-                full = _losses(ys, dup, d_g, cam_g, param, spec, delta0)
+                full = jnp.where(_dedupe(ys, jnp.concatenate([dup_ends, ~valid])), jnp.inf, full)
                 dup = ~_lowest_apart(full, ys, param, spec)
             ys, loss, steps, ok, dup = _screen(ys, loss, steps, dup, d_g, cam_g, param, spec,
                                                model_g, delta0, r1, a1)
