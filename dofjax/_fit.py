@@ -20,8 +20,9 @@ How the fit works:
   after the other (the second only if it exists). Before the pick, every distinct end point is
   refined a few steps on each finer pyramid level (`_screen`), then joined by the lowest local
   minima of a scan of u at full resolution (`_scan`: forward passes only, each scan point with
-  its best aperture from the same grid); the 3 of lowest full-resolution loss, apart in u, are
-  refined there and the pick is made on the full-resolution loss. The true basin in u can be
+  its best aperture from the same grid; only when the multi-start ran downsampled); the 3 of
+  lowest full-resolution loss, apart in u, are refined there and the pick is made on the
+  full-resolution loss. The true basin in u can be
   narrower than the starts' spacing, and when the blur is a pixel or two the downsampled
   levels' minima lie in other basins: the scan is what finds it.
 - Cost per solver step: the residual's JVP is a product with a Jacobian materialised once per
