@@ -509,14 +509,14 @@ def _screen(ys, loss, steps, dup, data, camera, param, spec, model, delta0, rtol
 
 
 def _scan(y_scan, data, camera, param, spec, delta0):
-    """The best local minima of the full-resolution loss along a grid of u: (ys, valid, loss).
+    """The best local minima of the full-resolution loss along a grid of u: (ys, loss).
 
     `y_scan` holds points evenly spaced in u across its bounds (sorted), each with its best
     aperture at the multi-start level. Their full-resolution losses (forward passes only) are
     compared along the grid, and the `_SCAN_KEEP` lowest local minima are returned with their
-    losses (`valid` is False, the loss +inf, for slots without one). At 256x256 the true basin in u is often narrower than the
-    spacing of the 8 starts, and the downsampled levels' minima lie elsewhere when the blur is
-    a pixel or two: in the 100-case noise-free suite, 5 cases ended in another basin and were
+    losses (+inf for slots without one). At 256x256 the true basin in u is often narrower than
+    the spacing of the 8 starts, and the downsampled levels' minima lie elsewhere when the
+    blur is a pixel or two: in the 100-case noise-free suite, 5 cases ended in another basin and were
     reported "ok" (see benchmarks/README.md).
     """
 
@@ -526,7 +526,7 @@ def _scan(y_scan, data, camera, param, spec, delta0):
     right = jnp.concatenate([values[1:], inf])
     key = jnp.where((values <= left) & (values <= right) & jnp.isfinite(values), values, jnp.inf)
     _, idx = jax.lax.top_k(-key, min(_SCAN_KEEP, values.shape[0]))
-    return y_scan[idx], jnp.isfinite(key[idx]), key[idx]
+    return y_scan[idx], key[idx]
 
 
 def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, spec: _Spec):
@@ -588,7 +588,7 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
         dup = jnp.zeros(ys.shape[0], bool)
         for g, (d_g, cam_g, model_g) in enumerate(stages[1:]):
             if extra is not None and g == len(stages) - 2:
-                y_extra, valid, extra_loss = extra
+                y_extra, extra_loss = extra
                 k = y_extra.shape[0]
                 dup_ends = _dedupe(ys, dup)
                 full = jnp.concatenate([_losses(ys, dup_ends, d_g, cam_g, param, spec, delta0),
@@ -597,7 +597,8 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
                 loss = jnp.concatenate([loss, jnp.full((k,), jnp.inf, loss.dtype)])
                 steps = jnp.concatenate([steps, jnp.zeros((k,), steps.dtype)])
                 ok = jnp.concatenate([ok, jnp.zeros((k,), bool)])
-                full = jnp.where(_dedupe(ys, jnp.concatenate([dup_ends, ~valid])), jnp.inf, full)
+                no_min = ~jnp.isfinite(extra_loss)
+                full = jnp.where(_dedupe(ys, jnp.concatenate([dup_ends, no_min])), jnp.inf, full)
                 dup = ~_lowest_apart(full, ys, param, spec)
             ys, loss, steps, ok, dup = _screen(ys, loss, steps, dup, d_g, cam_g, param, spec,
                                                model_g, delta0, r1, a1)
