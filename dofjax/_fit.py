@@ -60,6 +60,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ._autodiff import dense_jacobian
 from ._defocus import plain_autodiff
 from ._camera import Camera, coc_radius
+from ._linalg import ThinQR, unit_column_svd
 from ._numerics import inverse_depth, safe_div
 from ._rgbd import RGBD, Layers
 
@@ -229,13 +230,14 @@ class _TrustRegion(optx.ClassicalTrustRegion):
 
 
 def _make_solver(spec: _Spec, rtol: float, atol: float, floor=0.0):
+    # ThinQR: LAPACK's batched QR deadlocks fit_focus_batch on several host devices (_linalg).
     if spec.solver == "lm":
-        lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+        lm = optx.LevenbergMarquardt(rtol=rtol, atol=atol, linear_solver=ThinQR())
         return eqx.tree_at(lambda s: s.search, lm, _TrustRegion(floor=floor))
     if spec.solver == "gauss_newton":
-        return optx.GaussNewton(rtol=rtol, atol=atol)
+        return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=ThinQR())
     if spec.solver == "dogleg":
-        return optx.Dogleg(rtol=rtol, atol=atol)
+        return optx.Dogleg(rtol=rtol, atol=atol, linear_solver=ThinQR())
     return optx.BFGS(rtol=rtol, atol=atol)
 
 
@@ -378,10 +380,15 @@ def _uncertainty(ul, data, camera, spec, model, delta):
     # when J^T J is numerically singular (which forming J^T J would hide in float32).
     scale = jnp.sqrt(jnp.sum(jac_full * jac_full, axis=0))
     scale_safe = jnp.where(scale > 0, scale, 1.0)
-    _, sv, vt = jnp.linalg.svd(jac_full / scale_safe, full_matrices=False)
+    # (closed form for p <= 2: a batched LAPACK SVD can deadlock `fit_focus_batch`, see _linalg)
+    sv, vt = unit_column_svd(jac_full / scale_safe)
     condition = jnp.where(jnp.all(scale > 0), safe_div(sv[0], sv[-1], jnp.inf), jnp.inf)
     inv_sv2 = safe_div(1.0, sv * sv, jnp.inf)
     cov_n = (vt.T * inv_sv2) @ vt
+    # A parameter the image does not depend on at all has an infinite variance.
+    flat = scale <= 0
+    cov_n = jnp.where(flat[:, None] | flat[None, :],
+                      jnp.where(jnp.eye(p, dtype=bool), jnp.inf, 0.0), cov_n)
     cov_free = s2 * cov_n / jnp.outer(scale_safe, scale_safe)
     cov = jnp.zeros((2, 2), cov_free.dtype)
     for a, i in enumerate(free):
