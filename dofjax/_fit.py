@@ -24,12 +24,16 @@ How the fit works:
   lowest full-resolution loss, apart in u, are refined there and the pick is made on the
   full-resolution loss. The true basin in u can be
   narrower than the starts' spacing, and when the blur is a pixel or two the downsampled
-  levels' minima lie in other basins: the scan is what finds it.
+  levels' minima lie in other basins: the scan is what finds it. A third end point, the
+  runner-up, is polished too when its loss is within `_RUNNER_UP` x the best's (a few screen
+  steps can leave the true basin's candidate still descending), and the pick is remade on the
+  polished losses.
 - Cost per solver step: the residual's JVP is a product with a Jacobian materialised once per
   evaluation by `jax.jacfwd` (`_autodiff.dense_jacobian`), so optimistix's linearisations (one per
   column, the predicted reduction, every rejected step) never run the model again.
   Levenberg-Marquardt accepts steps that change the loss only at float rounding level
-  (`_TrustRegion`).
+  (`_TrustRegion`). Its linear solves use `_linalg.ThinQR` (Gram-Schmidt on the 1-2 columns),
+  not LAPACK: jaxlib's batched LAPACK kernels deadlocked `fit_focus_batch` on several devices.
 - Near/far ambiguity: |c| is symmetric about each depth, so a scene with (almost) one depth fits
   equally well with focus in front of or behind it. If the polished alternative's sum of squares
   exceeds the best one's by less than `ambiguity_threshold * s^2` (a likelihood-ratio test; s^2
@@ -1200,9 +1204,10 @@ def fit_focus(
         screen_steps: when the multi-start ran on a downsampled copy, every distinct start's
             end point is refined for up to this many steps (tolerance 1e-4) on each finer
             pyramid level and then at full resolution, and the pair to polish is picked by the
-            full-resolution loss (0: picked at the multi-start level). The downsampled loss is biased at small CoC (a blur of a pixel or less
-            leaves almost no trace after 4x4 pooling), and its ranking picked the wrong basin
-            in 19 of 91 noise-free 256x256 cases.
+            full-resolution loss (0: picked at the multi-start level). The downsampled loss is
+            biased at small CoC (a blur of a pixel or less leaves almost no trace after 4x4
+            pooling), and its ranking picked the wrong basin in 19 of 91 noise-free 256x256
+            cases.
         scan_points: the loss at full resolution is evaluated (forward passes only) at this
             many points evenly spaced in u = 1/d inside the bounds, each with its best aperture
             from the multi-start level's grid, and the 3 lowest local minima along the scan
