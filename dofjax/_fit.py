@@ -84,10 +84,6 @@ _SAME_END = 1e-3
 # Local minima of the full-resolution u scan (`scan_points`) kept, and candidates (those and the
 # coarse end points) refined by the full-resolution screen.
 _SCAN_KEEP = 3
-# A third end point (besides the best and the best on the other side of the scene) is polished
-# too when its screened loss is below this multiple of the best's: a screen's few steps can
-# leave the true basin's candidate still descending, just above a shallower minimum's loss.
-_RUNNER_UP = 2.0
 
 
 class FitResult(eqx.Module):
@@ -405,43 +401,47 @@ def _uncertainty(ul, data, camera, spec, model, delta):
     return cov, s2, condition, r
 
 
-def _polish(state, active, data, camera, param, spec, model, delta0, rtol, atol,
+def _polish(state, has_alt, data, camera, param, spec, model, delta0, rtol, atol,
             rounds: int):
-    """Polish the `active` members of `state` = (ys, losses, steps, ok) on one level; returns
-    (ys, losses, steps, ok, delta). Member 0 (the best so far) must be active.
+    """Polish the (best, alternative) pair on one level; returns (ys, losses, steps, ok, delta).
 
-    One compiled solver serves every round and every member (lax.scan over rounds, then over
-    the members). Round 0 polishes them; rounds >= 1 re-estimate the robust scale from member
-    0's residuals (MAD) and re-solve (an IRLS-style outer loop). The members are solved one
-    after the other, inactive ones skipped: vmapped, each would step until the slowest had
-    converged (2.5x the time of one solve for two members, measured at 256x256).
+    One compiled solver serves every round and both minima (lax.scan over rounds, then over the
+    two). Round 0 polishes the pair; rounds >= 1 re-estimate the robust scale from the residuals
+    (MAD) and re-solve (an IRLS-style outer loop). The two are solved one after the other, the
+    alternative only if there is one: vmapped, each would step until the slower had converged
+    (2.5x the time of one solve, measured at 256x256).
     """
+    active = jnp.stack([jnp.asarray(True), has_alt])
 
     def member(carry, i):
-        ys, losses, steps, oks, delta = carry
+        pair, pair_loss, pair_steps, pair_ok, delta = carry
 
         def solve(_):
-            return _solve(ys[i], data, camera, param, spec, model, delta, rtol, atol)
+            return _solve(pair[i], data, camera, param, spec, model, delta, rtol, atol)
 
         def skip(_):
-            return ys[i], losses[i], jnp.zeros_like(steps[i]), oks[i]
+            return pair[i], pair_loss[i], jnp.zeros_like(pair_steps[i]), pair_ok[i]
 
         y, lo, st, ok = jax.lax.cond(active[i], solve, skip, None)
-        return (ys.at[i].set(y), losses.at[i].set(lo), steps.at[i].add(st), oks.at[i].set(ok),
-                delta), None
+        return (pair.at[i].set(y), pair_loss.at[i].set(lo), pair_steps.at[i].add(st),
+                pair_ok.at[i].set(ok), delta), None
 
     def round_(carry, k):
-        ys, losses, steps, oks, delta = carry
+        pair, pair_loss, pair_steps, pair_ok, delta = carry
         if spec.auto_scale:
-            mad = _mad_scale(data, camera, param.to_ul(ys[0], spec.free), model, spec.loss)
+            mad = _mad_scale(data, camera, param.to_ul(pair[0], spec.free), model, spec.loss)
             delta = jnp.where(k == 0, delta0, mad)
-        carry, _ = jax.lax.scan(member, (ys, losses, steps, oks, delta),
-                                jnp.arange(ys.shape[0]))
+        carry, _ = jax.lax.scan(member, (pair, pair_loss, pair_steps, pair_ok, delta),
+                                jnp.arange(2))
         return carry, None
 
-    (ys, losses, steps, oks, delta), _ = jax.lax.scan(
-        round_, tuple(state) + (jnp.asarray(delta0, state[0].dtype),), jnp.arange(rounds))
-    return ys, losses, steps, oks, delta
+    pair = state[0]
+    (pair, pair_loss, pair_steps, pair_ok, delta), _ = jax.lax.scan(
+        round_, tuple(state) + (jnp.asarray(delta0, pair.dtype),), jnp.arange(rounds))
+    # without an alternative, the second of the pair is the first
+    pair, pair_loss, pair_steps, pair_ok = (jnp.where(has_alt, x, x[:1]) for x in
+                                            (pair, pair_loss, pair_steps, pair_ok))
+    return pair, pair_loss, pair_steps, pair_ok, delta
 
 
 def _pick(u_end, losses, u_scene):
@@ -615,35 +615,28 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
                                                model_g, delta0, r1, a1)
     ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(ys)
     best, alt, has_alt = _pick(ul_end[:, 0], loss, u_scene)
-    # The runner-up: the lowest other end point, polished too if its loss is close to the best's.
-    taken = (jnp.arange(loss.shape[0]) == best) | (jnp.arange(loss.shape[0]) == alt)
-    runner = jnp.argmin(jnp.where(taken, jnp.inf, loss))
-    has_runner = ~taken[runner] & (loss[runner] < _RUNNER_UP * loss[best])
-    idx = jnp.stack([best, alt, runner])
-    active = jnp.stack([jnp.asarray(True), has_alt, has_runner])
+    idx = jnp.stack([best, alt])
+    pair, pair_loss, pair_steps, pair_ok = ys[idx], loss[idx], steps[idx], ok[idx]
     rounds = 1 + (spec.robust_rounds if spec.auto_scale else 0)
-    trio, trio_loss, trio_steps, trio_ok, delta = _polish(
-        (ys[idx], loss[idx], steps[idx], ok[idx]), active, data, camera, param, spec,
+    pair, pair_loss, pair_steps, pair_ok, delta = _polish(
+        (pair, pair_loss, pair_steps, pair_ok), has_alt, data, camera, param, spec,
         spec.model, delta0, rtol, atol, rounds)
-    # The polish can change which member is best, and which side of the scene each is on.
-    trio_loss = jnp.where(active, trio_loss, jnp.inf)
-    u_trio = jax.vmap(lambda y: param.to_ul(y, spec.free)[0])(trio)
-    b = jnp.argmin(trio_loss)
-    other = active & ((u_trio > u_scene) != (u_trio[b] > u_scene))
-    has_alt = jnp.any(other)
-    a = jnp.where(has_alt, jnp.argmin(jnp.where(other, trio_loss, jnp.inf)), b)
-    ul = param.to_ul(trio[b], spec.free)
-    ul_alt = param.to_ul(trio[a], spec.free)
-    pair_loss = trio_loss[jnp.stack([b, a])]
-    pair_steps, pair_ok = trio_steps[b], trio_ok[b]
+    # The polish can swap the order of the two minima.
+    order = jnp.where(pair_loss[1] < pair_loss[0], jnp.array([1, 0]), jnp.array([0, 1]))
+    pair, pair_loss = pair[order], pair_loss[order]
+    pair_steps, pair_ok = pair_steps[order], pair_ok[order]
+    ul = param.to_ul(pair[0], spec.free)
+    ul_alt = param.to_ul(pair[1], spec.free)
     cov, s2, condition, r = _uncertainty(ul, data, camera, spec, spec.model, delta)
     n = 3.0 * jnp.sum(data.weight)
+    # Which side of the scene each polished minimum is on (the polish may have crossed over).
+    has_alt = has_alt & ((ul[0] > u_scene) != (ul_alt[0] > u_scene))
     cam_fit = camera.replace(focus_distance=1.0 / ul[0], aperture_radius=jnp.exp(ul[1]))
     coc = jnp.abs(coc_radius(data.depth, cam_fit))
     max_coc = jnp.max(jnp.where(data.weight > 0, coc, 0.0))
     return dict(
         ul=ul, ul_alt=ul_alt, sse=pair_loss[0] * n, sse_alt=pair_loss[1] * n, has_alt=has_alt,
-        steps=pair_steps, converged=pair_ok, cov=cov, s2=s2, condition=condition,
+        steps=pair_steps[0], converged=pair_ok[0], cov=cov, s2=s2, condition=condition,
         frac=param.fraction(ul), max_coc=max_coc, n=n, delta=delta,
         rms_target=jnp.sqrt(jnp.sum(jnp.square(data.target) * data.weight[..., None]) / n),
         pred_finite=jnp.all(jnp.isfinite(r)),
