@@ -24,10 +24,7 @@ How the fit works:
   lowest full-resolution loss, apart in u, are refined there and the pick is made on the
   full-resolution loss. The true basin in u can be
   narrower than the starts' spacing, and when the blur is a pixel or two the downsampled
-  levels' minima lie in other basins: the scan is what finds it. A third end point, the
-  runner-up, is polished too when its loss is within `_RUNNER_UP` x the best's (a few screen
-  steps can leave the true basin's candidate still descending), and the pick is remade on the
-  polished losses.
+  levels' minima lie in other basins: the scan is what finds it.
 - Cost per solver step: the residual's JVP is a product with a Jacobian materialised once per
   evaluation by `jax.jacfwd` (`_autodiff.dense_jacobian`), so optimistix's linearisations (one per
   column, the predicted reduction, every rejected step) never run the model again.
