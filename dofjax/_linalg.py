@@ -49,16 +49,15 @@ def thin_qr(a: Float[Array, "n p"]) -> tuple[Float[Array, "n p"], Float[Array, "
     return jnp.stack(qs, axis=1), r
 
 
-def _solve_upper(r: Float[Array, "p p"], b: Float[Array, " p"], lower: bool) -> Array:
-    """Back (or, for R^T, forward) substitution; p is small, so unrolled."""
+def _triangular_solve(r: Float[Array, "p p"], b: Float[Array, " p"], transpose: bool) -> Array:
+    """x with R x = b (back substitution) or R^T x = b (forward); p is small, so unrolled."""
     p = r.shape[0]
     x = [None] * p
-    order = range(p) if lower else range(p - 1, -1, -1)
-    for i in order:
+    for i in range(p) if transpose else range(p - 1, -1, -1):
         s = b[i]
         for k in range(p):
             if x[k] is not None:
-                s = s - (r[k, i] if lower else r[i, k]) * x[k]
+                s = s - (r[k, i] if transpose else r[i, k]) * x[k]
         x[i] = s / r[i, i]
     return jnp.stack(x)
 
@@ -84,9 +83,9 @@ class ThinQR(lx.AbstractLinearSolver):
         (q, r), transposed, structures = state
         b = ravel_vector(vector, structures)
         if transposed:  # wide: B^T y = b with B = QR: y = Q R^{-T} b (the minimum-norm solution)
-            x = q @ _solve_upper(r, b, lower=True)
+            x = q @ _triangular_solve(r, b, transpose=True)
         else:  # min ||A x - b||: R x = Q^T b
-            x = _solve_upper(r, q.T @ b, lower=False)
+            x = _triangular_solve(r, q.T @ b, transpose=False)
         return unravel_solution(x, structures), lx.RESULTS.successful, {}
 
     def transpose(self, state, options: dict[str, Any]):
