@@ -22,9 +22,9 @@ How the fit works:
   minima of a scan of u at full resolution (`_scan`: forward passes only, each scan point with
   its best aperture from the same grid; only when the multi-start ran downsampled); the 3 of
   lowest full-resolution loss, apart in u, are refined there and the pick is made on the
-  full-resolution loss. The true basin in u can be
-  narrower than the starts' spacing, and when the blur is a pixel or two the downsampled
-  levels' minima lie in other basins: the scan is what finds it.
+  full-resolution loss. The true basin in u can be narrower than the starts' spacing, and
+  when the blur is a pixel or two the downsampled levels' minima lie in other basins: the
+  scan is what finds it.
 - Cost per solver step: the residual's JVP is a product with a Jacobian materialised once per
   evaluation by `jax.jacfwd` (`_autodiff.dense_jacobian`), so optimistix's linearisations (one per
   column, the predicted reduction, every rejected step) never run the model again.
@@ -524,8 +524,8 @@ def _scan(y_scan, data, camera, param, spec, delta0):
     compared along the grid, and the `_SCAN_KEEP` lowest local minima are returned with their
     losses (+inf for slots without one). At 256x256 the true basin in u is often narrower than
     the spacing of the 8 starts, and the downsampled levels' minima lie elsewhere when the
-    blur is a pixel or two: in the 100-case noise-free suite, 5 cases ended in another basin and were
-    reported "ok" (see benchmarks/README.md).
+    blur is a pixel or two: in the 100-case noise-free suite, 5 cases ended in another basin
+    and were reported "ok" (see benchmarks/README.md).
     """
 
     values = _losses(y_scan, jnp.zeros(y_scan.shape[0], bool), data, camera, param, spec, delta0)
@@ -1206,9 +1206,10 @@ def fit_focus(
             narrower in u than the spacing of the starts, and at a blur of a pixel or two the
             downsampled levels' minima lie in other basins: at 256x256 24 points took the
             noise-free suite from 90 % to 97 % of cases within 1e-3 at about the same median
-            fit time, 48 to 98 % (a planes case's basin fell between 24 points). Only when the multi-start runs downsampled (see coarse_size) and
-            screen_steps > 0: at 64x64, with the multi-start at full resolution, the scan's
-            minima as extra starts changed nothing (96 % either way). 0: no scan.
+            fit time, 48 to 98 % (a planes case's basin fell between 24 points). Only when
+            the multi-start runs downsampled (see coarse_size) and screen_steps > 0: at 64x64,
+            with the multi-start at full resolution, the scan's minima as extra starts changed
+            nothing (96 % either way). 0: no scan.
         coarse_size: the multi-start runs on the image box-downsampled by 2^L, the largest factor
             keeping min(H, W) / 2^L >= coarse_size (None: always full resolution); the best
             start and the best one on the other side of the scene depth are then polished at
