@@ -7,7 +7,7 @@ infinity goes through these helpers, so that neither the value nor the gradient 
 from __future__ import annotations
 
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Float
+from jaxtyping import Array, ArrayLike
 
 
 def tiny(dtype) -> float:

@@ -7,7 +7,9 @@
    soft kernels has the second moment of the source's own kernel (radius sqrt(c^2 + R0^2)) and
    the weights are smooth in c at c = 0 (the gradient exists on the focal plane).
 2. Each slice holds premultiplied colour and front/back coverage and is convolved with its level's
-   soft kernel (normalised by its discrete sum: energy is conserved) by shifted sums. A level of
+   soft kernel (normalised by its discrete sum: energy is conserved) by shifted sums, channel by
+   channel, from sources padded once by the widest blur's border (no per-slice concatenation or
+   padding: at 512 x 512 those made the forward pass ~1.8x slower). A level of
    magnitude m is blurred at 1/s of the resolution (s the largest power of two with
    m / s >= MIN_LOW_RADIUS): box-averaged, convolved with the kernel whose second moment plus
    what the resampling adds equals the full-resolution kernel's, and bilinearly upsampled. So
@@ -28,9 +30,12 @@
    silhouette). The sum is divided by min(coverage, 1): where coverage is below 1 (what a blurred
    foreground uncovers but no layer supplies, or the image border) the visible colours are
    renormalised; elsewhere the scatter's energy is untouched.
-4. Peeled layers (`render(..., layers=K)`) add the surfaces a blurred foreground can uncover.
-   The mirror layer's reflected radiance is blurred at its virtual depth in the same slices and
-   added on top without occlusion (the mirror surface that carries it must not hide it).
+4. Peeled layers (`render(..., layers=K)`) add the surfaces a blurred foreground can uncover;
+   for single-layer input (`hidden=True`, what `dofjax.defocus` passes when it has no layers) the
+   pyramid method's estimate of the hidden background (`_hidden.hidden_layer`) is that extra
+   source. The mirror layer's reflected radiance is blurred at its virtual depth in the same
+   slices and added on top without occlusion (the mirror surface that carries it must not hide
+   it).
 
 Kernels depend only on static choices (window, shape), so derivatives w.r.t. focus and aperture
 flow only through the slice weights. `sliced_defocus(...)` is pure and jittable (the window is
@@ -47,6 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._camera import Camera, coc_radius
+from ._hidden import hidden_layer
 from ._kernels import MAGNITUDES, R0, bucket_window, soft_kernel
 from ._numerics import safe_div
 
@@ -189,17 +195,19 @@ def _upsample(x, s: int):
     return x
 
 
-def _blur(field, kernel):
-    """Zero-padded 'same' convolution of (C, h, w) with a (K, K) kernel (traced values, static
-    size), by K^2 shifted sums: for kernels this small one fused pass beats an FFT product."""
+def _blur(field, kernel, pad: int):
+    """'Same' convolution of (C, h, w) with a (K, K) kernel (traced values, static size) by K^2
+    shifted sums, from `field` already zero-padded by `pad` >= K // 2 on every side
+    ((C, h + 2 pad, w + 2 pad)): for kernels this small one fused pass beats an FFT product."""
     r = kernel.shape[0] // 2
-    _, h, w = field.shape
-    p = jnp.pad(field, ((0, 0), (r, r), (r, r)))
+    o = pad - r
+    h, w = field.shape[-2] - 2 * pad, field.shape[-1] - 2 * pad
     out = 0.0
     for i in range(2 * r + 1):
         for j in range(2 * r + 1):
             # out(y, x) = sum_t field((y, x) - t) K(t), t = (i - r, j - r)
-            out = out + kernel[i, j] * p[:, 2 * r - i: 2 * r - i + h, 2 * r - j: 2 * r - j + w]
+            a, b = o + 2 * r - i, o + 2 * r - j
+            out = out + kernel[i, j] * field[..., a: a + h, b: b + w]
     return out
 
 
@@ -281,21 +289,32 @@ def surface_sources(rgb, depth, reflection, layers, camera, levels):
     return out
 
 
-def _sources(rgb, depth, layers, camera, levels, reflection=None):
-    """(colour, signed CoC, coverage) of every surface (see `surface_sources`)."""
-    return [(colour, coc_radius(z, camera).astype(rgb.dtype), alpha)
-            for colour, z, alpha in surface_sources(rgb, depth, reflection, layers, camera,
-                                                    levels)]
+def _sources(rgb, depth, layers, camera, levels, reflection=None, hidden=False):
+    """(colour, signed CoC, coverage) of every surface (see `surface_sources`), and with `hidden`
+    (single-layer input) the estimated background behind foreground edges (`hidden_layer`),
+    gated like a peeled layer: it enters only 1.5-2.5 levels behind the visible surface."""
+    out = [(colour, coc_radius(z, camera).astype(rgb.dtype), alpha)
+           for colour, z, alpha in surface_sources(rgb, depth, reflection, layers, camera,
+                                                   levels)]
+    if hidden:
+        colour, c, _ = out[0]
+        window = float(np.max(np.abs(levels)))
+        h_rgb, h_c, h_a = hidden_layer(jnp.moveaxis(colour, -1, 0), jnp.clip(c, -window, window),
+                                       window)
+        useful = jnp.clip(_level_index(h_c, levels) - _level_index(c, levels) - 1.5, 0.0, 1.0)
+        out.append((jnp.moveaxis(h_rgb, 0, -1), h_c, h_a * useful))
+    return out
 
 
 def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rotation=0.0,
                    ratio=1.0, reflection=None, reflection_depth=None, layers=None,
-                   min_radius: float = MIN_LOW_RADIUS):
+                   hidden: bool = False, min_radius: float = MIN_LOW_RADIUS):
     """Defocus by depth slices, each blurred by shifted sums at its own resolution (pure,
     jittable; `window` px and `min_radius` are static).
 
     Arguments as `dofjax.defocus`; no input validation here (the public wrapper does it).
-    |c| beyond the window is clamped to it. `min_radius`: the smallest coarse-grid kernel radius
+    |c| beyond the window is clamped to it. `hidden`: add the hidden-background estimate of
+    single-layer input (`_hidden.hidden_layer`) as a source. `min_radius`: the smallest coarse-grid kernel radius
     (px) a level is blurred with (`MIN_LOW_RADIUS`; larger is slower and closer to the exact
     full-resolution disc, inf blurs every level at full resolution).
     """
@@ -303,14 +322,23 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     dtype = rgb.dtype
     levels, factors, kernels = _plan(float(window), blades, float(rotation), float(ratio),
                                      float(min_radius))
-    srcs = _sources(rgb, depth, layers, camera, levels, reflection)
+    srcs = _sources(rgb, depth, layers, camera, levels, reflection, hidden)
     mirror = reflection is not None
     s_max = max(factors)
     # pad to a multiple of the coarsest divisor (no sources there; cropped at the end)
     hp, wp = -(-height // s_max) * s_max, -(-width // s_max) * s_max
 
+    runs = _runs(levels, factors, kernels)
+    # the blur border of each run (coarse px; FFT runs pad their own grid), and the sources'
+    # zero border at full resolution that covers every run's (each slice is built padded, so
+    # no blur pads its input; a per-run pad of the sources cost ~3 ms a run in forward mode)
+    sizes = [max(kernels[p].shape[0] for p in ps) for ps in runs]
+    borders = [k // 2 if k <= SHIFTED_MAX else 0 for k in sizes]
+    border_px = max(factors[ps[0]] * b for ps, b in zip(runs, borders))
+
     def pad(x):
-        return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((0, hp - height), (0, wp - width)))
+        return jnp.pad(x, ((0, 0),) * (x.ndim - 2)
+                       + ((border_px, hp - height + border_px), (border_px, wp - width + border_px)))
 
     colour = pad(jnp.stack([jnp.moveaxis(s[0], -1, 0) for s in srcs]))  # (S, 3, hp, wp)
     c = pad(jnp.stack([s[1] for s in srcs]))
@@ -327,36 +355,45 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     q_lv = np.sign(levels) * levels * levels
     n = len(levels)
 
-    def run(state, ps, s):
-        """Composite levels `ps` (one resolution 1/s) front to back onto `state`."""
+    def run(state, i_run):
+        """Composite the levels of run `i_run` (one resolution) front to back onto `state`."""
+        ps, size, border = runs[i_run], sizes[i_run], borders[i_run]
+        s = factors[ps[0]]
         h, w = hp // s, wp // s
-        size = max(kernels[p].shape[0] for p in ps)
         if size <= SHIFTED_MAX:
             # kernels padded to the run's largest; each level blurs with its own size's taps only
             # (a `lax.switch` on the size: every tap costs a pass over the slice)
-            sizes = sorted({kernels[p].shape[0] for p in ps})
+            k_sizes = sorted({kernels[p].shape[0] for p in ps})
             ks = np.zeros((len(ps), size, size))
             for i, p in enumerate(ps):
                 o = (size - kernels[p].shape[0]) // 2
                 ks[i, o: size - o, o: size - o] = kernels[p]
             ks = (jnp.asarray(ks, dtype),
-                  jnp.asarray([sizes.index(kernels[p].shape[0]) for p in ps], jnp.int32))
+                  jnp.asarray([k_sizes.index(kernels[p].shape[0]) for p in ps], jnp.int32))
             branches = [functools.partial(
-                lambda f, k, o: _blur(f, k[o: size - o, o: size - o]), o=(size - k_size) // 2)
-                for k_size in sizes]
+                lambda fs, k, o: [_blur(f, k[o: size - o, o: size - o], border) for f in fs],
+                o=(size - k_size) // 2) for k_size in k_sizes]
 
-            def blur(f, k):
+            def blur(fs, k):
                 k, which = k
                 if len(branches) == 1:
-                    return branches[0](f, k)
-                return jax.lax.switch(which, branches, f, k)
+                    return branches[0](fs, k)
+                return jax.lax.switch(which, branches, fs, k)
         else:
             ks, r, grid = _spectra([kernels[p] for p in ps], h, w, dtype)
             ks = jnp.asarray(ks)
 
-            def blur(f, k):
-                return _blur_fft(f, k, r, grid)
+            def blur(fs, k):
+                return [_blur_fft(f, k, r, grid) for f in fs]
 
+        # the sources with this run's border (a static slice of the padded ones)
+        def padded(x):
+            o = border_px - s * border
+            return x[..., o: x.shape[-2] - o, o: x.shape[-1] - o]
+
+        colour_p, q_p, alpha_p = padded(colour), padded(q), padded(alpha)
+        if mirror:
+            refl_p, q_r_p = padded(refl), padded(q_r)
         q3 = np.array([(q_lv[max(p - 1, 0)] + (p == 0), q_lv[p],
                         q_lv[min(p + 1, n - 1)] - (p == n - 1)) for p in ps])
         xs = (jnp.asarray(q3, dtype), jnp.asarray([p == 0 for p in ps]),
@@ -365,29 +402,30 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
         def body(state, x):
             acc_rgb, acc_cov, occluders, prev_cov, prev_occ = state
             q3, first, last, kernel = x
-            front_w, back_w = _level_weights(q, (q3[0], q3[1], q3[2]), first, last)
-            front, back = front_w * alpha, back_w * alpha
+            front_w, back_w = _level_weights(q_p, (q3[0], q3[1], q3[2]), first, last)
+            front, back = front_w * alpha_p, back_w * alpha_p
             # what this slice hides of the next one: its sources in front of the level fully,
             # those a fraction t of the way to the next level by (1 - t) (= back_w), so a source
             # crossing a level never switches its occlusion on or off (the loss stays continuous
             # in focus and aperture)
             occ = front + back * back_w
-            # sums over the few sources written out: XLA CPU miscompiled the fused
-            # broadcast-multiply-reduce over the source axis when it had 3 entries (the blue
-            # channel came out as the red one)
-            w = front + back
-            parts = [sum(w[k] * colour[k] for k in range(w.shape[0])),
-                     sum(w[k] for k in range(w.shape[0]))[None],
-                     sum(occ[k] for k in range(w.shape[0]))[None]]
+            # the channels are built and blurred as separate arrays, the sums over the few
+            # sources written out: a concatenated (5, H, W) slice compiled on XLA CPU to a
+            # fusion 4-5x slower than the same arithmetic per channel (and the fused
+            # broadcast-multiply-reduce over the source axis once came out with blue = red)
+            weight = front + back
+            srcs = range(weight.shape[0])
+            parts = [sum(weight[k] * colour_p[k] for k in srcs),
+                     sum(weight[k] for k in srcs), sum(occ[k] for k in srcs)]
             if mirror:
-                wr = sum(_level_weights(q_r, (q3[0], q3[1], q3[2]), first, last))
-                parts.append(wr[None] * refl)
-            blurred = blur(_downsample(jnp.concatenate(parts), s), kernel)
-            cov_b, occ_b = blurred[3], blurred[4]
+                parts.append(sum(_level_weights(q_r_p, (q3[0], q3[1], q3[2]), first, last))
+                             * refl_p)
+            blurred = blur([_downsample(x, s) for x in parts], kernel)
+            rgb_b, cov_b, occ_b = blurred[:3]
             transmit = jnp.clip(1.0 - occluders - prev_occ, 0.0, 1.0)
-            colour_b = transmit * blurred[:3]
+            colour_b = transmit * rgb_b
             if mirror:
-                colour_b = jnp.concatenate([colour_b, blurred[5:8]])
+                colour_b = jnp.concatenate([colour_b, blurred[3]])
             return (acc_rgb + colour_b, acc_cov + transmit * cov_b,
                     occluders + prev_cov, cov_b, occ_b), None
 
@@ -397,18 +435,17 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
         z = jnp.zeros((hp // s, wp // s), dtype)
         return jnp.zeros((nc,) + z.shape, dtype), z, z, z, z
 
-    runs = _runs(levels, factors, kernels)
     s_min = min(factors)
     last_fine = max(i for i, ps in enumerate(runs) if factors[ps[0]] == s_min)
     # Near side and the finest runs: the state (accumulated colour and coverage, occluders) is
     # carried to each finer run by one upsampling of its 7 channels.
     s_cur, state = factors[runs[0][0]], zeros(factors[runs[0][0]])
-    for ps in runs[: last_fine + 1]:
-        s = factors[ps[0]]
+    for i_run in range(last_fine + 1):
+        s = factors[runs[i_run][0]]
         if s != s_cur:
             up = _upsample(jnp.concatenate([state[0], jnp.stack(state[1:])]), s_cur // s)
             state, s_cur = (up[:nc],) + tuple(up[nc:]), s
-        state = run(state, ps, s)
+        state = run(state, i_run)
     acc_rgb, acc_cov, occluders, prev_cov, prev_occ = state
 
     # Far side: seen through the finest runs' (sharp) transmittance, applied at full resolution;
@@ -420,10 +457,10 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
         # still hides the far slices behind it
         state = (None, None, z, prev_cov - prev_occ, z)
         far = []
-        for ps in runs[last_fine + 1:]:
-            s = factors[ps[0]]
+        for i_run in range(last_fine + 1, len(runs)):
+            s = factors[runs[i_run][0]]
             state = zeros(s)[:2] + tuple(_downsample(x, s // s_cur) for x in state[2:])
-            state = run(state, ps, s)
+            state = run(state, i_run)
             far.append((s, jnp.concatenate([state[0], state[1][None]])))
             s_cur = s
         s_back, back = far[-1]

@@ -110,6 +110,26 @@ def test_blurred_foreground_spreads_over_sharp_background():
     np.testing.assert_allclose(out[16, 3], [1.0, 0.0, 0.0], atol=1e-9)
 
 
+def test_hidden_background_estimate_shows_inside_a_blurred_foreground_edge():
+    # single-layer input: with `hidden`, the lens sees around the blurred blue square to an
+    # estimate (pull-push of the red background) of what lies behind its edge; without it the
+    # renormalised square stays blue up to its edge. Far from edges nothing changes.
+    cam = camera()
+    rgb = np.zeros((N, N, 3))
+    rgb[..., 0] = 1.0
+    rgb[10:22, 10:22] = [0.0, 0.0, 1.0]
+    depth = np.full((N, N), 2.0)
+    depth[10:22, 10:22] = depth_for_coc(5.0, cam)
+    plain, hidden = (np.asarray(sliced_defocus(rgb, depth, cam, window=6, hidden=h))
+                     for h in (False, True))
+    assert plain[16, 11, 0] < 0.05  # just inside the edge: blue only
+    assert 0.15 < hidden[16, 11, 0] < 0.6  # red from behind the edge
+    assert hidden[16, 11, 2] > 0.4  # ... while the square still covers most of it
+    np.testing.assert_allclose(hidden[1, 1], plain[1, 1], atol=1e-9)
+    assert hidden[16, 16, 2] > 0.95  # the square's centre, 1 px beyond its blur: still blue
+    assert np.all(np.isfinite(hidden))
+
+
 def test_matches_pyramid_on_constant_depth_levels():
     cam = camera()
     rgb = np.random.default_rng(3).random((N, N, 3))
@@ -132,8 +152,9 @@ def test_gradients_match_central_differences():
         return jnp.sum(w * out)
 
     p = jnp.array([2.1, 0.05])
-    g_rev = jax.grad(loss)(p)
-    g_fwd = jax.jacfwd(loss)(p)
+    g_rev = jax.jit(jax.grad(loss))(p)
+    g_fwd = jax.jit(jax.jacfwd(loss))(p)
+    loss = jax.jit(loss)  # one compilation for the four evaluations below
     for i, h in enumerate([1e-5, 1e-7]):
         e = jnp.zeros(2).at[i].set(h)
         fd = (loss(p + e) - loss(p - e)) / (2 * h)
