@@ -31,9 +31,9 @@
    foreground uncovers but no layer supplies, or the image border) the visible colours are
    renormalised; elsewhere the scatter's energy is untouched.
 4. Peeled layers (`render(..., layers=K)`) add the surfaces a blurred foreground can uncover;
-   for single-layer input (`hidden=True`, what `dofjax.defocus` passes when it has no layers) the
-   pyramid method's estimate of the hidden background (`_hidden.hidden_layer`) is that extra
-   source. The mirror layer's reflected radiance is blurred at its virtual depth in the same
+   for single-layer input, `hidden=True` makes the pyramid method's estimate of the hidden
+   background (`_hidden.hidden_layer`) that extra source (`dofjax.defocus` does not pass it yet:
+   it would change the fitter's model, see the README). The mirror layer's reflected radiance is blurred at its virtual depth in the same
    slices and added on top without occlusion (the mirror surface that carries it must not hide
    it).
 
