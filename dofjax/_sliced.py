@@ -9,7 +9,7 @@
 2. Each slice holds premultiplied colour and front/back coverage and is convolved with its level's
    soft kernel (normalised by its discrete sum: energy is conserved) by shifted sums, channel by
    channel, from sources padded once by the widest blur's border (no per-slice concatenation or
-   padding: at 512 x 512 those made the forward pass ~1.8x slower). A level of
+   padding: at 512 x 512 those made the forward pass 1.4-1.8x slower). A level of
    magnitude m is blurred at 1/s of the resolution (s the largest power of two with
    m / s >= MIN_LOW_RADIUS): box-averaged, convolved with the kernel whose second moment plus
    what the resampling adds equals the full-resolution kernel's, and bilinearly upsampled. So
@@ -33,9 +33,9 @@
 4. Peeled layers (`render(..., layers=K)`) add the surfaces a blurred foreground can uncover;
    for single-layer input, `hidden=True` makes the pyramid method's estimate of the hidden
    background (`_hidden.hidden_layer`) that extra source (`dofjax.defocus` does not pass it yet:
-   it would change the fitter's model, see the README). The mirror layer's reflected radiance is blurred at its virtual depth in the same
-   slices and added on top without occlusion (the mirror surface that carries it must not hide
-   it).
+   it would change the fitter's model). The mirror layer's reflected radiance is blurred at its
+   virtual depth in the same slices and added on top without occlusion (the mirror surface that
+   carries it must not hide it).
 
 Kernels depend only on static choices (window, shape), so derivatives w.r.t. focus and aperture
 flow only through the slice weights. `sliced_defocus(...)` is pure and jittable (the window is
@@ -314,9 +314,9 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
 
     Arguments as `dofjax.defocus`; no input validation here (the public wrapper does it).
     |c| beyond the window is clamped to it. `hidden`: add the hidden-background estimate of
-    single-layer input (`_hidden.hidden_layer`) as a source. `min_radius`: the smallest coarse-grid kernel radius
-    (px) a level is blurred with (`MIN_LOW_RADIUS`; larger is slower and closer to the exact
-    full-resolution disc, inf blurs every level at full resolution).
+    single-layer input (`_hidden.hidden_layer`) as a source. `min_radius`: the smallest
+    coarse-grid kernel radius (px) a level is blurred with (`MIN_LOW_RADIUS`; larger is slower
+    and closer to the exact full-resolution disc, inf blurs every level at full resolution).
     """
     height, width = depth.shape
     dtype = rgb.dtype
@@ -337,8 +337,8 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     border_px = max(factors[ps[0]] * b for ps, b in zip(runs, borders))
 
     def pad(x):
-        return jnp.pad(x, ((0, 0),) * (x.ndim - 2)
-                       + ((border_px, hp - height + border_px), (border_px, wp - width + border_px)))
+        b = border_px
+        return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((b, hp - height + b), (b, wp - width + b)))
 
     colour = pad(jnp.stack([jnp.moveaxis(s[0], -1, 0) for s in srcs]))  # (S, 3, hp, wp)
     c = pad(jnp.stack([s[1] for s in srcs]))
@@ -414,9 +414,9 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
             # fusion 4-5x slower than the same arithmetic per channel (and the fused
             # broadcast-multiply-reduce over the source axis once came out with blue = red)
             weight = front + back
-            srcs = range(weight.shape[0])
-            parts = [sum(weight[k] * colour_p[k] for k in srcs),
-                     sum(weight[k] for k in srcs), sum(occ[k] for k in srcs)]
+            each = range(weight.shape[0])
+            parts = [sum(weight[k] * colour_p[k] for k in each),
+                     sum(weight[k] for k in each), sum(occ[k] for k in each)]
             if mirror:
                 parts.append(sum(_level_weights(q_r_p, (q3[0], q3[1], q3[2]), first, last))
                              * refl_p)
