@@ -183,8 +183,8 @@ def test_float32_image_of_float64_parameters_differentiates():
                                                                                        np.float32)
     f = dofjax.defocus_fn(rgb, depth, camera(aperture_radius=0.05), window=8, method="sliced")
     p = (jnp.float64(2.1), jnp.float64(0.05))
-    g_rev = jax.grad(lambda d, a: jnp.sum(f(d, a)), argnums=(0, 1))(*p)
-    g_fwd = jax.jacfwd(lambda d, a: jnp.sum(f(d, a)), argnums=(0, 1))(*p)
+    g_rev = jax.jit(jax.grad(lambda d, a: jnp.sum(f(d, a)), argnums=(0, 1)))(*p)
+    g_fwd = jax.jit(jax.jacfwd(lambda d, a: jnp.sum(f(d, a)), argnums=(0, 1)))(*p)
     assert f(*p).dtype == np.float32
     for r, w in zip(g_rev, g_fwd):
         assert np.isfinite(float(r)) and float(r) != 0.0
