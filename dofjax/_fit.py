@@ -81,6 +81,11 @@ _SAME_END = 1e-3
 # Local minima of the full-resolution u scan (`scan_points`) kept, and candidates (those and the
 # coarse end points) refined by the full-resolution screen.
 _SCAN_KEEP = 3
+# Inverse depths of the scene's most common surfaces that join the u scan (`_depth_modes`), and
+# the histogram (bins across the u bounds, smallest share of the pixels) that finds them.
+_SCAN_MODES = 4
+_MODE_BINS = 256
+_MODE_SHARE = 0.02
 
 
 class FitResult(eqx.Module):
@@ -516,13 +521,18 @@ def _screen(ys, loss, steps, dup, data, camera, param, spec, model, delta0, rtol
     return ys, loss, steps + steps2, ok, dup
 
 
-def _scan(y_scan, data, camera, param, spec, delta0):
-    """The best local minima of the full-resolution loss along a grid of u: (ys, loss).
+def _scan(y_scan, modes, data, camera, param, spec, delta0):
+    """The scene's most common inverse depths and the best local minima of the full-resolution
+    loss along a grid of u: (ys, loss), the `modes` first.
 
-    `y_scan` holds points evenly spaced in u across its bounds (sorted), each with its best
-    aperture at the multi-start level. Their full-resolution losses (forward passes only) are
-    compared along the grid, and the `_SCAN_KEEP` lowest local minima are returned with their
-    losses (+inf for slots without one). At 256x256 the true basin in u is often narrower than
+    `y_scan` holds points evenly spaced in u across its bounds and the scene's most common
+    inverse depths (`_depth_modes`), sorted by u, each with its best aperture at the
+    multi-start level. Their full-resolution losses (forward passes only) are compared along
+    the grid, and the `_SCAN_KEEP` lowest local minima are returned with their losses (+inf for
+    slots without one); of equal neighbours (a repeated mode) only the first counts. The points
+    at the indices `modes` (the scene's most common inverse depths, `_depth_modes`) come first,
+    whatever their loss: the fit screens them all (a basin there can be narrow in the
+    aperture too, so the grid aperture's loss does not rank it). At 256x256 the true basin in u is often narrower than
     the spacing of the 8 starts, and the downsampled levels' minima lie elsewhere when the
     blur is a pixel or two: in the 100-case noise-free suite, 5 cases ended in another basin
     and were reported "ok" (see benchmarks/README.md).
@@ -532,9 +542,10 @@ def _scan(y_scan, data, camera, param, spec, delta0):
     inf = jnp.full((1,), jnp.inf, values.dtype)
     left = jnp.concatenate([inf, values[:-1]])
     right = jnp.concatenate([values[1:], inf])
-    key = jnp.where((values <= left) & (values <= right) & jnp.isfinite(values), values, jnp.inf)
+    key = jnp.where((values < left) & (values <= right) & jnp.isfinite(values), values, jnp.inf)
     _, idx = jax.lax.top_k(-key, min(_SCAN_KEEP, values.shape[0]))
-    return y_scan[idx], key[idx]
+    idx = jnp.concatenate([modes, idx])
+    return y_scan[idx], jnp.concatenate([values[modes], key[idx[modes.shape[0]:]]])
 
 
 def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, spec: _Spec):
@@ -578,7 +589,9 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
     y_starts = with_best_aperture(y_starts)
     extra = None
     if y_scan is not None:
-        extra = _scan(with_best_aperture(y_scan), data, camera, param, spec, delta0)
+        y_scan, modes = y_scan
+        extra = _scan(with_best_aperture(y_scan), modes, data, camera, param, spec, delta0)
+        n_modes = modes.shape[0]
     # Every start is solved (vmapped, loose tolerance): picking the best grid points and solving
     # only those lost 2 of 12 noise-free cases at 64x64 to wrong basins (0 of 12 this way).
     ys, loss, steps, ok = _solve_many(y_starts, src, cam1, param, spec1, model1, delta0, r1, a1)
@@ -592,7 +605,8 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
         # several full-resolution basins away (see `_scan`). Of those and the distinct coarse
         # end points, only the `_SCAN_KEEP` with the lowest full-resolution loss (and apart in
         # u) are screened there: a screen costs up to screen_steps Jacobians, a loss one
-        # forward pass.
+        # forward pass. The scene's distinct most common inverse depths are screened too,
+        # whatever their loss (see `_scan`).
         dup = jnp.zeros(ys.shape[0], bool)
         for g, (d_g, cam_g, model_g) in enumerate(stages[1:]):
             if extra is not None and g == len(stages) - 2:
@@ -606,8 +620,11 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
                 steps = jnp.concatenate([steps, jnp.zeros((k,), steps.dtype)])
                 ok = jnp.concatenate([ok, jnp.zeros((k,), bool)])
                 no_min = ~jnp.isfinite(extra_loss)
-                full = jnp.where(_dedupe(ys, jnp.concatenate([dup_ends, no_min])), jnp.inf, full)
-                dup = ~_lowest_apart(full, ys, param, spec)
+                dup = _dedupe(ys, jnp.concatenate([dup_ends, no_min]))
+                full = jnp.where(dup, jnp.inf, full)
+                i = jnp.arange(ys.shape[0]) - (ys.shape[0] - k)  # index among the extras
+                forced = (i >= 0) & (i < n_modes) & ~dup
+                dup = ~(_lowest_apart(full, ys, param, spec) | forced)
             ys, loss, steps, ok, dup = _screen(ys, loss, steps, dup, d_g, cam_g, param, spec,
                                                model_g, delta0, r1, a1)
     ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(ys)
@@ -943,6 +960,32 @@ def _depths_seen(depth_a: np.ndarray, weight: np.ndarray, extras: _Extras | None
     return np.concatenate(out)
 
 
+def _depth_modes(fracs: np.ndarray, n: int = _SCAN_MODES) -> np.ndarray:
+    """The `n` most common inverse depths of the scene, as fractions of the u bounds.
+
+    A focus plane that sits on a surface is common (a photographer focuses on the subject), and
+    then the loss has a spike there as narrow as the surface's spread of inverse depth: a plane
+    covering 90 % of a 256x256 image put the true basin inside 0.01 of the u range, between
+    two points of any affordable grid, and the fit ended in another basin (data_gen case 103,
+    benchmarks/README.md). A histogram over the bounds finds the surfaces with at least
+    `_MODE_SHARE` of the pixels, largest first and at least two bins apart; each mode is the
+    median inverse depth in its bin (exact for a fronto-parallel plane). Unused places repeat
+    the largest mode (or the middle of the bounds when no surface qualifies), so the number of
+    points, a static shape, is always `n`.
+    """
+    fracs = fracs[(fracs >= 0.0) & (fracs <= 1.0)]
+    counts, _ = np.histogram(fracs, bins=_MODE_BINS, range=(0.0, 1.0))
+    modes = []
+    free = counts >= max(_MODE_SHARE * fracs.size, 1)
+    while len(modes) < n and np.any(free):
+        b = int(np.argmax(np.where(free, counts, -1)))
+        in_bin = fracs[np.minimum((fracs * _MODE_BINS).astype(int), _MODE_BINS - 1) == b]
+        modes.append(float(np.median(in_bin)))
+        free[max(b - 2, 0):b + 3] = False
+    modes = modes or [0.5]
+    return np.array(modes + modes[:1] * (n - len(modes)))
+
+
 def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, batch,
              rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds, window,
              max_window, defocus_options, start_steps, screen_steps, scan_points,
@@ -990,14 +1033,19 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         y_apertures = jnp.asarray(logit(fracs), dtype)
     f = _levels(depth_a.shape, coarse_size)
     # the full-resolution scan of u (`_scan`): evenly spaced in u, the guess's aperture (each
-    # point then takes its best one, as the starts do)
+    # point then takes its best one, as the starts do), with the scene's most common inverse
+    # depths merged in (their places in the sorted scan: `modes`)
+    inv = 1.0 / depth_a[np.isfinite(depth_a) & (weight > 0)]
     y_scan = None
     if 0 in free and scan_points > 0 and f > 1 and screen_steps > 0:
-        fracs = (np.arange(scan_points) + 0.5) / scan_points
-        y_scan = jnp.asarray(np.array([[logit(fu) if i == 0 else logit(frac0[1]) for i in free]
-                                       for fu in fracs]), dtype)
+        grid = (np.arange(scan_points) + 0.5) / scan_points
+        fracs = np.concatenate([grid, _depth_modes((inv - u_lo) / (u_hi - u_lo))])
+        order = np.argsort(fracs, kind="stable")
+        modes = np.argsort(order)[scan_points:]
+        y_scan = (jnp.asarray(np.array([[logit(fu) if i == 0 else logit(frac0[1]) for i in free]
+                                        for fu in fracs[order]]), dtype),
+                  jnp.asarray(modes, jnp.int32))
     y_starts = (y_starts, y_apertures, y_scan)
-    inv = 1.0 / depth_a[np.isfinite(depth_a) & (weight > 0)]
     u_scene = jnp.asarray(float(np.median(inv)), dtype)
     # pyramid levels, coarsest first: the multi-start's, then (with a screen) every finer one
     factors, g = [], f
@@ -1209,7 +1257,9 @@ def fit_focus(
             fit time, 48 to 98 % (a planes case's basin fell between 24 points). Only when
             the multi-start runs downsampled (see coarse_size) and screen_steps > 0: at 64x64,
             with the multi-start at full resolution, the scan's minima as extra starts changed
-            nothing (96 % either way). 0: no scan.
+            nothing (96 % either way). 0: no scan. The scan also visits the inverse depths
+            of the scene's (up to 4) most common surfaces, where a focus plane on a surface
+            puts a basin narrower than any affordable grid's spacing.
         coarse_size: the multi-start runs on the image box-downsampled by 2^L, the largest factor
             keeping min(H, W) / 2^L >= coarse_size (None: always full resolution); the best
             start and the best one on the other side of the scene depth are then polished at

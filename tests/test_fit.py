@@ -286,6 +286,54 @@ def test_scan_finds_a_basin_between_the_starts():
     assert float(found.loss) < 0.5 * float(missed.loss)  # 0.42 vs 1 (sums of squares)
 
 
+U_MODE = 0.01 + 0.99 * 10 / 48  # midway between two of the 48 scan points (fractions of u)
+
+
+def dominant_plane_model(rgb, depth, camera):
+    """A global minimum in u only 0.002 wide, at the inverse depth of the surface that covers
+    90 % of the scene (focus on the subject), midway between two scan points, and a broad local
+    one at U_BROAD. Residuals (target 0) as `narrow_well_model`."""
+    u = 1.0 / camera.focus_distance
+    vals = jnp.stack([1.0 - jnp.exp(-jnp.square((u - U_MODE) / 0.002)), u - U_BROAD,
+                      jnp.log(camera.aperture_radius / 0.05)])
+    return jnp.zeros(rgb.shape, vals.dtype).at[0, 0].set(vals)
+
+
+def test_scan_visits_the_inverse_depth_of_the_dominant_surface(monkeypatch):
+    """A basin narrower than the scan's spacing, at the depth of the surface that fills most of
+    the image, is found because the scan also visits the scene's most common inverse depths
+    (data_gen case 103 at 256x256: the fit ended at d 39 instead of 19.5 and said "ok"). With
+    the scan's even grid alone, the fit ends in the broad local minimum."""
+    from dofjax import _fit
+
+    rgb, _ = scene()
+    rgb = rgb[:16, :16]
+    depth = jnp.full((16, 16), 1.0 / U_MODE).at[:5, :5].set(2.0)  # 90 % one plane
+    cam = Camera(width=16, height=16, fov=60.0, focus_distance=1.0 / 0.6, aperture_radius=0.02)
+    kw = dict(model=dominant_plane_model, starts=4, bounds=BOUNDS_WELL, coarse_size=4)
+    target = jnp.zeros_like(rgb)
+    found = fit_focus(target, rgb, depth, cam, **kw)
+    # the well's minimum, pulled 1.7e-4 towards U_BROAD by the second residual
+    assert 1.0 / float(found.focus_distance) == pytest.approx(U_MODE, abs=5e-4)
+    monkeypatch.setattr(_fit, "_depth_modes", lambda fracs: np.zeros(0))
+    missed = fit_focus(target, rgb, depth, cam, **kw)
+    assert abs(1.0 / float(missed.focus_distance) - U_MODE) > 0.1
+    assert float(found.loss) < 0.5 * float(missed.loss)
+
+
+def test_depth_modes_are_the_most_common_inverse_depths():
+    from dofjax._fit import _depth_modes
+
+    rng = np.random.default_rng(0)
+    planes = np.concatenate([np.full(600, 0.3), np.full(300, 0.71), rng.uniform(0, 1, 100),
+                             np.full(10, 0.9), [-0.5, 1.5]])  # 1 % at 0.9; two outside bounds
+    modes = _depth_modes(planes, 4)
+    np.testing.assert_allclose(modes, [0.3, 0.71, 0.3, 0.3])  # largest first; repeats fill
+    assert _depth_modes(rng.uniform(0, 1, 1000), 3).tolist() == [0.5] * 3  # no surface: middle
+    tilted = np.linspace(0.4, 0.401, 500)  # one bin: its median
+    assert _depth_modes(tilted, 1)[0] == pytest.approx(np.median(tilted))
+
+
 # --- bad input: ValueError before any solver runs ------------------------------------------
 
 
