@@ -44,7 +44,6 @@ How the fit works:
 from __future__ import annotations
 
 import dataclasses
-import functools
 import inspect
 import math
 import numbers
@@ -72,7 +71,8 @@ LOSSES = ("l2", "huber", "cauchy")
 _ROBUST_K = {"huber": 1.345, "cauchy": 2.385}
 # A CoC below this (px) is hidden by the defocus model's sub-pixel floor: the image looks sharp.
 _MIN_VISIBLE_COC = 0.25
-# Log-spaced apertures inside the bounds that each multi-start tries before solving (plus the guess).
+# Log-spaced apertures inside the bounds that each multi-start tries before solving (and the
+# guess).
 _APERTURE_GRID = 6
 # Internal bound fraction closer than this to 0 or 1 counts as "at the bound".
 _AT_BOUND = 1e-3
@@ -532,11 +532,12 @@ def _scan(y_scan, modes, data, camera, param, spec, delta0):
     slots without one); of equal neighbours (a repeated mode) only the first counts. The points
     at the indices `modes` (the scene's most common inverse depths, `_depth_modes`) come first,
     whatever their loss: the fit screens them all (a basin there can be narrow in the
-    aperture too, so the grid aperture's loss does not rank it). At 256x256 the true basin in u is often narrower than
-    the spacing of the 8 starts, and the downsampled levels' minima lie elsewhere when the
-    blur is a pixel or two: in the 100-case noise-free suite, 5 cases ended in another basin
-    and were reported "ok" (see benchmarks/README.md).
-    """
+    aperture too, so the grid aperture's loss does not rank it).
+
+    At 256x256 the true basin in u is often narrower than the spacing of the 8 starts, and the
+    downsampled levels' minima lie elsewhere when the blur is a pixel or two: in the 100-case
+    noise-free suite, 5 cases ended in another basin and were reported "ok" (see
+    benchmarks/README.md)."""
 
     values = _losses(y_scan, jnp.zeros(y_scan.shape[0], bool), data, camera, param, spec, delta0)
     inf = jnp.full((1,), jnp.inf, values.dtype)
