@@ -36,7 +36,8 @@ c. --reference: targets from `dofjax.render_reference` at `--spp` (cached in
    configuration (visible surface only, every pixel).
 
 Writes benchmarks/results/fit_accuracy_{suite,noise,reference}.md, .json (per-case rows) and .png
-(`--out` another directory).
+(`--out` another directory); suite and noise results of a size other than 64 get a `_SIZE` suffix
+(`fit_accuracy_suite_256.md`).
 """
 
 from __future__ import annotations
@@ -187,6 +188,12 @@ def _header(args, what: str, sharp_spp: int | None = None) -> str:
             f"{_command()}`\n")
 
 
+def _sized(name: str, size: int) -> str:
+    """Result file stem: 64x64 runs keep the plain name, other sizes add theirs (a 256 px suite
+    once overwrote the 64 px results)."""
+    return name if size == 64 else f"{name}_{size}"
+
+
 def _save(name: str, text: str, rows) -> None:
     with open(os.path.join(RESULTS, f"fit_accuracy_{name}.md"), "w") as f:
         f.write(text)
@@ -280,7 +287,7 @@ def suite(args) -> None:
     if not fails:
         lines.append("(none)")
     lines.append(guess_breakdown(rows, [r in fails for r in rows]))
-    _save("suite", "\n".join(lines) + "\n", rows)
+    _save(_sized("suite", args.size), "\n".join(lines) + "\n", rows)
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 4))
     for k in PARAMS:
@@ -296,7 +303,7 @@ def suite(args) -> None:
     ax.set_title(f"noise-free suite, {args.size}x{args.size}")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(os.path.join(RESULTS, "fit_accuracy_suite.png"), dpi=100)
+    fig.savefig(os.path.join(RESULTS, f"fit_accuracy_{_sized('suite', args.size)}.png"), dpi=100)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -386,7 +393,7 @@ def noise_study(args) -> None:
     bad = [any(abs(r[k] - r["truth"][k]) > 10 * truth_of[r["index"]][k]["crb"] for k in PARAMS)
            for r in rows]
     lines.append(guess_breakdown(rows, bad))
-    _save("noise", "\n".join(lines) + "\n", {"summary": summary, "fits": rows})
+    _save(_sized("noise", args.size), "\n".join(lines) + "\n", {"summary": summary, "fits": rows})
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     x = np.linspace(-4, 4, 200)
@@ -400,7 +407,7 @@ def noise_study(args) -> None:
         ax.legend(fontsize=7)
     fig.suptitle(f"sigma = {args.sigma:g}, {n} draws, {args.size}x{args.size}")
     fig.tight_layout()
-    fig.savefig(os.path.join(RESULTS, "fit_accuracy_noise.png"), dpi=100)
+    fig.savefig(os.path.join(RESULTS, f"fit_accuracy_{_sized('noise', args.size)}.png"), dpi=100)
 
 
 # ------------------------------------------------------------------------------------------------
