@@ -553,8 +553,7 @@ def _scan(y_scan, modes, data, camera, param, spec, delta0):
     right = jnp.concatenate([values[1:], inf])
     key = jnp.where((values < left) & (values <= right) & jnp.isfinite(values), values, jnp.inf)
     _, idx = jax.lax.top_k(-key, min(_SCAN_KEEP, values.shape[0]))
-    idx = jnp.concatenate([modes, idx])
-    return y_scan[idx], jnp.concatenate([values[modes], key[idx[modes.shape[0]:]]])
+    return y_scan[jnp.concatenate([modes, idx])], jnp.concatenate([values[modes], key[idx]])
 
 
 def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, spec: _Spec):
@@ -979,7 +978,7 @@ def _depth_modes(fracs: np.ndarray, n: int = _SCAN_MODES) -> np.ndarray:
     covering 90 % of a 256x256 image put the true basin inside 0.01 of the u range, between
     two points of any affordable grid, and the fit ended in another basin (data_gen case 103,
     benchmarks/README.md). A histogram over the bounds finds the surfaces with at least
-    `_MODE_SHARE` of the pixels, largest first and at least two bins apart; each mode is the
+    `_MODE_SHARE` of the pixels, largest first and more than two bins apart; each mode is the
     median inverse depth in its bin (exact for a fronto-parallel plane). Unused places repeat
     the largest mode (or the middle of the bounds when no surface qualifies), so the number of
     points, a static shape, is always `n`.
