@@ -39,11 +39,42 @@ def _dense_jacobian_jvp(fn, primals, tangents):
     # (in the output's dtype: a float32 image of float64 parameters has float32 tangents)
     dout = (jnp.zeros_like(out) if _is_zero(dy)
             else jnp.tensordot(jac, dy, axes=1).astype(out.dtype))
+    return out, dout + _args_tangent(fn, y, args, dargs, out.dtype)
+
+
+def _args_tangent(fn, y, args, dargs, dtype):
+    """What the args' tangents add to fn's: plain forward mode through fn (0 if they are all
+    symbolic zeros)."""
     leaves = jax.tree_util.tree_leaves(dargs, is_leaf=_is_zero)
-    if not all(_is_zero(t) for t in leaves):
-        # what the args' tangents add: plain forward mode through fn
-        dargs = jax.tree_util.tree_map(
-            lambda t: jnp.zeros(t.aval.shape, t.aval.dtype) if _is_zero(t) else t, dargs,
-            is_leaf=_is_zero)
-        dout = dout + jax.jvp(lambda a: fn(y, a), (args,), (dargs,))[1].astype(out.dtype)
-    return out, dout
+    if all(_is_zero(t) for t in leaves):
+        return 0.0
+    dargs = jax.tree_util.tree_map(
+        lambda t: jnp.zeros(t.aval.shape, t.aval.dtype) if _is_zero(t) else t, dargs,
+        is_leaf=_is_zero)
+    return jax.jvp(lambda a: fn(y, a), (args,), (dargs,))[1].astype(dtype)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def value_and_jacobian(fn, y, args):
+    """(fn(y, args), J) with J = d fn / d y (out.shape + y.shape), built by one forward-mode
+    pass with len(y) tangents; differentiated like `dense_jacobian` (the value's tangent is
+    `J @ dy`, plus plain forward mode through fn for the args' tangents). J itself carries no
+    derivative (its tangent is zero: no second derivatives).
+
+    For a solver that wants the Jacobian it already built at its last point: as the auxiliary
+    output of a least-squares residual it comes back with the solution, so a covariance at the
+    optimum needs no further pass through fn (and no further copy of fn in the program).
+    """
+    jac, out = jax.jacfwd(lambda y_: (fn(y_, args),) * 2, has_aux=True)(y)
+    return out, jac
+
+
+@functools.partial(value_and_jacobian.defjvp, symbolic_zeros=True)
+def _value_and_jacobian_jvp(fn, primals, tangents):
+    y, args = primals
+    dy, dargs = tangents
+    out, jac = value_and_jacobian(fn, y, args)
+    dout = (jnp.zeros_like(out) if _is_zero(dy)
+            else jnp.tensordot(jac, dy, axes=1).astype(out.dtype))
+    dout = dout + _args_tangent(fn, y, args, dargs, out.dtype)
+    return (out, jac), (dout, jnp.zeros_like(jac))

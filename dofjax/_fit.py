@@ -60,7 +60,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ._autodiff import dense_jacobian
+from ._autodiff import value_and_jacobian
 from ._defocus import plain_autodiff
 from ._camera import Camera, coc_radius
 from ._linalg import ThinQR, unit_column_svd
@@ -325,35 +325,42 @@ def _residual_ul(ul, data: _Data, camera: Camera, model: Callable, loss: str, de
 def _solve(y0, data, camera, param, spec, model, delta, rtol, atol):
     """One optimistix least-squares solve from y0 (unconstrained coordinates of the free params).
 
-    Returns (y, mean loss 2 sum(rho) / n, steps, success).
+    Returns (y, mean loss 2 sum(rho) / n, steps, success, J) with J (n, len(free)) the
+    Jacobian of the residual w.r.t. the free parameters' (u, log A) at y: the one the solver
+    built there (`value_and_jacobian`, the residual's auxiliary output), reused for the
+    covariance instead of one more pass (and one more compiled copy) of the model.
     """
+    free = jnp.asarray(spec.free)
 
-    def residual(y, args):
+    def residual(ul_free, args):
         delta, data, camera, param = args
-        return _residual_ul(param.to_ul(y, spec.free), data, camera, model, spec.loss, delta)
+        return _residual_ul(param.fixed_values.at[free].set(ul_free), data, camera, model,
+                            spec.loss, delta)
 
     def fn(y, args):
-        return dense_jacobian(residual, y, args)
+        ul_free = args[-1].to_ul(y, spec.free)[free]
+        return value_and_jacobian(residual, ul_free, args)
 
     # float rounding of the model's pixels (a few eps of the image's rms), as a mean square
     eps = jnp.finfo(data.target.dtype).eps
     floor = jnp.square(8.0 * eps) * jnp.mean(jnp.square(data.target))
     sol = optx.least_squares(fn, _make_solver(spec, rtol, atol, floor), y0,
-                             args=(delta, data, camera, param),
+                             args=(delta, data, camera, param), has_aux=True,
                              max_steps=spec.max_steps, throw=False)
-    # The solver's state holds f at the last accepted y (= sol.value): reusing it avoids one
-    # more copy of the (large) model in the compiled program.
+    # The solver's state holds f at the last accepted y (= sol.value) and the aux (J) with it:
+    # reusing them avoids more copies of the (large) model in the compiled program.
     f_info = sol.state.f_info
     if spec.solver == "bfgs":
         loss = 2.0 * f_info.f
     else:
         loss = jnp.sum(f_info.residual * f_info.residual)
-    return sol.value, loss, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+    return (sol.value, loss, sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
+            sol.aux)
 
 
 def _solve_many(y0s, data, camera, param, spec, model, delta, rtol, atol):
     return eqx.filter_vmap(
-        lambda y0: _solve(y0, data, camera, param, spec, model, delta, rtol, atol)
+        lambda y0: _solve(y0, data, camera, param, spec, model, delta, rtol, atol)[:4]
     )(y0s)
 
 
@@ -371,22 +378,17 @@ def _mad_scale(data, camera, ul, model, loss) -> Array:
     return _ROBUST_K[loss] * jnp.maximum(1.4826 * mad, floor)
 
 
-def _uncertainty(ul, data, camera, spec, model, delta):
-    """Covariance of (d, A) in world units, s^2, the normalised condition number, residual."""
+def _uncertainty(ul, jac_ul, loss, data, spec):
+    """Covariance of (d, A) in world units, s^2 and the normalised condition number, from the
+    residual's Jacobian `jac_ul` (n, len(free)) w.r.t. the free parameters' (u, log A) at `ul`
+    (the polish's last one, `_solve`) and its mean loss."""
     free = spec.free
-
-    def g(theta):  # theta: free params in user units (d, A)
-        ul_t = ul
-        for j, i in enumerate(free):
-            ul_t = ul_t.at[i].set(1.0 / theta[j] if i == 0 else jnp.log(theta[j]))
-        return _residual_ul(ul_t, data, camera, model, spec.loss, delta)
-
-    theta = jnp.stack([1.0 / ul[0] if i == 0 else jnp.exp(ul[1]) for i in free])
-    r, lin = jax.linearize(g, theta)
-    jac = jax.vmap(lin, out_axes=1)(jnp.eye(len(free), dtype=theta.dtype))  # (n, p)
+    # d r / d d = d r / d u * (-u^2); d r / d A = d r / d log A / A
+    chain = jnp.stack([-ul[0] ** 2 if i == 0 else jnp.exp(-ul[1]) for i in free])
+    jac = jac_ul * chain
     n = 3.0 * jnp.sum(data.weight)
     p = len(free)
-    sse = jnp.sum(r * r) * n  # undo the 1/sqrt(n) scaling of the residual
+    sse = loss * n  # undo the 1/sqrt(n) scaling of the residual
     s2 = sse / jnp.maximum(n - p, 1.0)
     jac_full = jac * jnp.sqrt(n)
     # Column-normalised SVD: the condition number is scale free, and the inverse is stable even
@@ -407,12 +409,13 @@ def _uncertainty(ul, data, camera, spec, model, delta):
     for a, i in enumerate(free):
         for b, j in enumerate(free):
             cov = cov.at[i, j].set(cov_free[a, b])
-    return cov, s2, condition, r
+    return cov, s2, condition
 
 
 def _polish(state, has_alt, data, camera, param, spec, model, delta0, rtol, atol,
             rounds: int):
-    """Polish the (best, alternative) pair on one level; returns (ys, losses, steps, ok, delta).
+    """Polish the (best, alternative) pair on one level; returns (ys, losses, steps, ok, delta,
+    jacs), jacs (2, n, len(free)) the residual's Jacobian at each (see `_solve`).
 
     One compiled solver serves every round and both minima (lax.scan over rounds, then over the
     two). Round 0 polishes the pair; rounds >= 1 re-estimate the robust scale from the residuals
@@ -423,34 +426,35 @@ def _polish(state, has_alt, data, camera, param, spec, model, delta0, rtol, atol
     active = jnp.stack([jnp.asarray(True), has_alt])
 
     def member(carry, i):
-        pair, pair_loss, pair_steps, pair_ok, delta = carry
+        pair, pair_loss, pair_steps, pair_ok, jacs, delta = carry
 
         def solve(_):
             return _solve(pair[i], data, camera, param, spec, model, delta, rtol, atol)
 
         def skip(_):
-            return pair[i], pair_loss[i], jnp.zeros_like(pair_steps[i]), pair_ok[i]
+            return pair[i], pair_loss[i], jnp.zeros_like(pair_steps[i]), pair_ok[i], jacs[i]
 
-        y, lo, st, ok = jax.lax.cond(active[i], solve, skip, None)
+        y, lo, st, ok, jac = jax.lax.cond(active[i], solve, skip, None)
         return (pair.at[i].set(y), pair_loss.at[i].set(lo), pair_steps.at[i].add(st),
-                pair_ok.at[i].set(ok), delta), None
+                pair_ok.at[i].set(ok), jacs.at[i].set(jac), delta), None
 
     def round_(carry, k):
-        pair, pair_loss, pair_steps, pair_ok, delta = carry
+        delta = carry[-1]
         if spec.auto_scale:
-            mad = _mad_scale(data, camera, param.to_ul(pair[0], spec.free), model, spec.loss)
+            mad = _mad_scale(data, camera, param.to_ul(carry[0][0], spec.free), model, spec.loss)
             delta = jnp.where(k == 0, delta0, mad)
-        carry, _ = jax.lax.scan(member, (pair, pair_loss, pair_steps, pair_ok, delta),
-                                jnp.arange(2))
+        carry, _ = jax.lax.scan(member, carry[:-1] + (delta,), jnp.arange(2))
         return carry, None
 
     pair = state[0]
-    (pair, pair_loss, pair_steps, pair_ok, delta), _ = jax.lax.scan(
-        round_, tuple(state) + (jnp.asarray(delta0, pair.dtype),), jnp.arange(rounds))
+    n = 3 * data.target.shape[0] * data.target.shape[1]
+    jacs = jnp.zeros((2, n, len(spec.free)), data.target.dtype)
+    (pair, pair_loss, pair_steps, pair_ok, jacs, delta), _ = jax.lax.scan(
+        round_, tuple(state) + (jacs, jnp.asarray(delta0, pair.dtype)), jnp.arange(rounds))
     # without an alternative, the second of the pair is the first
-    pair, pair_loss, pair_steps, pair_ok = (jnp.where(has_alt, x, x[:1]) for x in
-                                            (pair, pair_loss, pair_steps, pair_ok))
-    return pair, pair_loss, pair_steps, pair_ok, delta
+    pair, pair_loss, pair_steps, pair_ok, jacs = (
+        jnp.where(has_alt, x, x[:1]) for x in (pair, pair_loss, pair_steps, pair_ok, jacs))
+    return pair, pair_loss, pair_steps, pair_ok, delta, jacs
 
 
 def _pick(u_end, losses, u_scene):
@@ -516,7 +520,7 @@ def _screen(ys, loss, steps, dup, data, camera, param, spec, model, delta0, rtol
         y, is_dup = y_dup
 
         def solve(_):
-            return _solve(y, data, camera, param, spec2, model, delta0, rtol, atol)
+            return _solve(y, data, camera, param, spec2, model, delta0, rtol, atol)[:4]
 
         def skip(_):
             return y, jnp.asarray(jnp.inf, loss.dtype), jnp.zeros((), steps.dtype), \
@@ -642,7 +646,7 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
     idx = jnp.stack([best, alt])
     pair, pair_loss, pair_steps, pair_ok = ys[idx], loss[idx], steps[idx], ok[idx]
     rounds = 1 + (spec.robust_rounds if spec.auto_scale else 0)
-    pair, pair_loss, pair_steps, pair_ok, delta = _polish(
+    pair, pair_loss, pair_steps, pair_ok, delta, jacs = _polish(
         (pair, pair_loss, pair_steps, pair_ok), has_alt, data, camera, param, spec,
         spec.model, delta0, rtol, atol, rounds)
     # The polish can swap the order of the two minima.
@@ -651,7 +655,8 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
     pair_steps, pair_ok = pair_steps[order], pair_ok[order]
     ul = param.to_ul(pair[0], spec.free)
     ul_alt = param.to_ul(pair[1], spec.free)
-    cov, s2, condition, r = _uncertainty(ul, data, camera, spec, spec.model, delta)
+    jac = jacs[order[0]]
+    cov, s2, condition = _uncertainty(ul, jac, pair_loss[0], data, spec)
     n = 3.0 * jnp.sum(data.weight)
     # Which side of the scene each polished minimum is on (the polish may have crossed over).
     has_alt = has_alt & ((ul[0] > u_scene) != (ul_alt[0] > u_scene))
@@ -663,7 +668,7 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
         steps=pair_steps[0], converged=pair_ok[0], cov=cov, s2=s2, condition=condition,
         frac=param.fraction(ul), max_coc=max_coc, n=n, delta=delta,
         rms_target=jnp.sqrt(jnp.sum(jnp.square(data.target) * data.weight[..., None]) / n),
-        pred_finite=jnp.all(jnp.isfinite(r)),
+        pred_finite=jnp.isfinite(pair_loss[0]) & jnp.all(jnp.isfinite(jac)),
     )
 
 

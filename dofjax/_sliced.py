@@ -306,6 +306,8 @@ def _sources(rgb, depth, layers, camera, levels, reflection=None, hidden=False):
     return out
 
 
+@functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio", "hidden",
+                                             "min_radius"))
 def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rotation=0.0,
                    ratio=1.0, reflection=None, reflection_depth=None, layers=None,
                    hidden: bool = False, min_radius: float = MIN_LOW_RADIUS):

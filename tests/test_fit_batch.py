@@ -25,6 +25,10 @@ SCRIPT = textwrap.dedent(
     truths = [(1.7, 0.08), (3.0, 0.06), (1.2, 0.03)]  # odd B: padded to 4 on 2 devices
     targets = jnp.stack([blur_model(rgb, depth, cam.replace(focus_distance=d, aperture_radius=a))
                          for d, a in truths])
+    # fixed noise: at a noise-free optimum the loss (and so every standard error) is float
+    # rounding, which differs in its last digits between two compiled programs
+    noise = np.random.default_rng(0).normal(0.0, 1e-3, targets.shape)
+    targets = targets + noise
     kw = dict(KW, starts=8)  # more than 4 starts deadlocked with LAPACK QR (dofjax._linalg)
     sharded = fit_focus_batch(targets, rgb, depth, cam, **kw)
     single = fit_focus_batch(targets, rgb, depth, cam, devices=jax.devices()[:1], **kw)
@@ -32,7 +36,9 @@ SCRIPT = textwrap.dedent(
         a, b = np.asarray(getattr(sharded, name)), np.asarray(getattr(single, name))
         assert a.shape == (3,), (name, a.shape)
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-300, err_msg=name)
-    np.testing.assert_allclose(np.asarray(sharded.focus_distance), [1.7, 3.0, 1.2], rtol=1e-6)
+    # within 4 standard errors of the truth (noise 1e-3 moves the estimates by about one)
+    err = np.abs(np.asarray(sharded.focus_distance) - [1.7, 3.0, 1.2])
+    assert np.all(err < 4.0 * np.asarray(sharded.focus_distance_se)), (err, sharded)
     assert sharded.message == single.message
     print("OK")
     """
