@@ -29,8 +29,10 @@ How the fit works:
   a basin narrower than any affordable grid's spacing, and those points are screened even
   when they do not rank among the 3 (within `_MODE_RATIO` of the best other loss).
 - Cost per solver step: the residual's JVP is a product with a Jacobian materialised once per
-  evaluation by `jax.jacfwd` (`_autodiff.dense_jacobian`), so optimistix's linearisations (one per
-  column, the predicted reduction, every rejected step) never run the model again.
+  evaluation by `jax.jacfwd` (`_autodiff.value_and_jacobian`), so optimistix's linearisations
+  (one per column, the predicted reduction, every rejected step) never run the model again.
+  That Jacobian (w.r.t. u and log A) is also the residual's auxiliary output: the polish's
+  last one gives the covariance.
   Levenberg-Marquardt accepts steps that change the loss only at float rounding level
   (`_TrustRegion`). Its linear solves use `_linalg.ThinQR` (Gram-Schmidt on the 1-2 columns),
   not LAPACK: jaxlib's batched LAPACK kernels deadlocked `fit_focus_batch` on several devices.
@@ -38,8 +40,8 @@ How the fit works:
   equally well with focus in front of or behind it. If the polished alternative's sum of squares
   exceeds the best one's by less than `ambiguity_threshold * s^2` (a likelihood-ratio test; s^2
   is the residual variance), the result is flagged `ambiguous` and both minima are reported.
-- Uncertainty: covariance = s^2 (J^T J)^-1 with J = d residual / d (d, A) in world units, from
-  `jax.jacfwd` at the optimum. The columns of J are normalised before the (SVD) inverse; a
+- Uncertainty: covariance = s^2 (J^T J)^-1 with J = d residual / d (d, A) in world units, the
+  polish's Jacobian at the optimum by the chain rule (no further pass through the model). The columns of J are normalised before the (SVD) inverse; a
   normalised condition number above `max_condition`, a parameter at its bound, or a solution whose
   largest CoC is below a quarter pixel (the target looks sharp) gives `identifiable=False`.
 """
@@ -532,14 +534,14 @@ def _screen(ys, loss, steps, dup, data, camera, param, spec, model, delta0, rtol
     return ys, loss, steps + steps2, ok, dup
 
 
-def _scan(y_scan, modes, data, camera, param, spec, delta0):
+def _scan(y_scan, modes, values):
     """The scene's most common inverse depths and the best local minima of the full-resolution
     loss along a grid of u: (ys, loss), the `modes` first.
 
     `y_scan` holds points evenly spaced in u across its bounds and the scene's most common
     inverse depths (`_depth_modes`), sorted by u, each with its best aperture at the
-    multi-start level. Their full-resolution losses (forward passes only) are compared along
-    the grid, and the `_SCAN_KEEP` lowest local minima are returned with their losses (+inf for
+    multi-start level. Their full-resolution losses `values` (forward passes only) are
+    compared along the grid, and the `_SCAN_KEEP` lowest local minima are returned with their losses (+inf for
     slots without one); of equal neighbours (a repeated mode) only the first counts. The points
     at the indices `modes` (the scene's most common inverse depths, `_depth_modes`) come first,
     whatever their loss: the fit screens those within `_MODE_RATIO` of the best other
@@ -551,7 +553,6 @@ def _scan(y_scan, modes, data, camera, param, spec, delta0):
     noise-free suite, 5 cases ended in another basin and were reported "ok" (see
     benchmarks/README.md)."""
 
-    values = _losses(y_scan, jnp.zeros(y_scan.shape[0], bool), data, camera, param, spec, delta0)
     inf = jnp.full((1,), jnp.inf, values.dtype)
     left = jnp.concatenate([inf, values[:-1]])
     right = jnp.concatenate([values[1:], inf])
@@ -598,12 +599,14 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
 
         return ys.at[:, ai].set(jax.lax.map(best_aperture, ys))
 
-    y_starts = with_best_aperture(y_starts)
-    extra = None
     if y_scan is not None:
         y_scan, modes = y_scan
-        extra = _scan(with_best_aperture(y_scan), modes, data, camera, param, spec, delta0)
         n_modes = modes.shape[0]
+        # one pass over starts and scan points (one copy of the model in the program)
+        both = with_best_aperture(jnp.concatenate([y_starts, y_scan]))
+        y_starts, y_scan = both[:y_starts.shape[0]], both[y_starts.shape[0]:]
+    else:
+        y_starts = with_best_aperture(y_starts)
     # Every start is solved (vmapped, loose tolerance): picking the best grid points and solving
     # only those lost 2 of 12 noise-free cases at 64x64 to wrong basins (0 of 12 this way).
     ys, loss, steps, ok = _solve_many(y_starts, src, cam1, param, spec1, model1, delta0, r1, a1)
@@ -621,12 +624,16 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
         # when their loss is within _MODE_RATIO of the best other candidate's (see `_scan`).
         dup = jnp.zeros(ys.shape[0], bool)
         for g, (d_g, cam_g, model_g) in enumerate(stages[1:]):
-            if extra is not None and g == len(stages) - 2:
-                y_extra, extra_loss = extra
-                k = y_extra.shape[0]
+            if y_scan is not None and g == len(stages) - 2:
+                # the end points' and the scan's full-resolution losses in one pass (one copy
+                # of the model in the program)
                 dup_ends = _dedupe(ys, dup)
-                full = jnp.concatenate([_losses(ys, dup_ends, d_g, cam_g, param, spec, delta0),
-                                        extra_loss])
+                values = _losses(jnp.concatenate([ys, y_scan]),
+                                 jnp.concatenate([dup_ends, jnp.zeros(y_scan.shape[0], bool)]),
+                                 d_g, cam_g, param, spec, delta0)
+                y_extra, extra_loss = _scan(y_scan, modes, values[ys.shape[0]:])
+                k = y_extra.shape[0]
+                full = jnp.concatenate([values[:ys.shape[0]], extra_loss])
                 ys = jnp.concatenate([ys, y_extra])
                 loss = jnp.concatenate([loss, jnp.full((k,), jnp.inf, loss.dtype)])
                 steps = jnp.concatenate([steps, jnp.zeros((k,), steps.dtype)])
