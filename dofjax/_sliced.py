@@ -195,20 +195,26 @@ def _upsample(x, s: int):
     return x
 
 
-def _blur(field, kernel, pad: int):
-    """'Same' convolution of (C, h, w) with a (K, K) kernel (traced values, static size) by K^2
-    shifted sums, from `field` already zero-padded by `pad` >= K // 2 on every side
-    ((C, h + 2 pad, w + 2 pad)): for kernels this small one fused pass beats an FFT product."""
+def _blur(fields, kernel, pad: int):
+    """'Same' convolution of each (C, h, w) field with a (K, K) kernel (traced values, static
+    size) by K^2 shifted sums, from fields already zero-padded by `pad` >= K // 2 on every side
+    ((C, h + 2 pad, w + 2 pad)): for kernels this small one fused pass beats an FFT product.
+    The taps are split off the kernel once for all fields (one op, not a slice and a squeeze
+    per tap and field: fewer ops to trace, transform and compile in every copy of the model)."""
     r = kernel.shape[0] // 2
     o = pad - r
-    h, w = field.shape[-2] - 2 * pad, field.shape[-1] - 2 * pad
-    out = 0.0
-    for i in range(2 * r + 1):
-        for j in range(2 * r + 1):
-            # out(y, x) = sum_t field((y, x) - t) K(t), t = (i - r, j - r)
-            a, b = o + 2 * r - i, o + 2 * r - j
-            out = out + kernel[i, j] * field[..., a: a + h, b: b + w]
-    return out
+    taps = [t.reshape(()) for t in jnp.split(kernel.reshape(-1), kernel.size)]
+    outs = []
+    for field in fields:
+        h, w = field.shape[-2] - 2 * pad, field.shape[-1] - 2 * pad
+        out = 0.0
+        for i in range(2 * r + 1):
+            for j in range(2 * r + 1):
+                # out(y, x) = sum_t field((y, x) - t) K(t), t = (i - r, j - r)
+                a, b = o + 2 * r - i, o + 2 * r - j
+                out = out + taps[i * (2 * r + 1) + j] * field[..., a: a + h, b: b + w]
+        outs.append(out)
+    return outs
 
 
 def _fft_size(n: int) -> int:
@@ -373,7 +379,7 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
             ks = (jnp.asarray(ks, dtype),
                   jnp.asarray([k_sizes.index(kernels[p].shape[0]) for p in ps], jnp.int32))
             branches = [functools.partial(
-                lambda fs, k, o: [_blur(f, k[o: size - o, o: size - o], border) for f in fs],
+                lambda fs, k, o: _blur(fs, k[o: size - o, o: size - o], border),
                 o=(size - k_size) // 2) for k_size in k_sizes]
 
             def blur(fs, k):
