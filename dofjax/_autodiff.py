@@ -59,7 +59,9 @@ def value_and_jacobian(fn, y, args):
     """(fn(y, args), J) with J = d fn / d y (out.shape + y.shape), built by one forward-mode
     pass with len(y) tangents; differentiated like `dense_jacobian` (the value's tangent is
     `J @ dy`, plus plain forward mode through fn for the args' tangents). J itself carries no
-    derivative (its tangent is zero: no second derivatives).
+    derivative (its tangent is zero), so a second derivative of the value w.r.t. y drops the
+    d J / d y term: the Hessian of sum(value^2) / 2 comes out as Gauss-Newton's J^T J (exact
+    where the value is zero). Use `dense_jacobian` where exact second derivatives matter.
 
     For a solver that wants the Jacobian it already built at its last point: as the auxiliary
     output of a least-squares residual it comes back with the solution, so a covariance at the

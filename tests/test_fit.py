@@ -95,6 +95,40 @@ def test_dense_jacobian_residual_derivatives():
             mode(lambda a: jnp.sum(residual(y, a) ** 2))(args), rtol=1e-10)
 
 
+def test_value_and_jacobian_derivatives():
+    # The solvers' residual returns the Jacobian it built as its aux (the covariance reuses
+    # it): value, Jacobian and first derivatives must equal plain autodiff; the second
+    # derivative of the loss is Gauss-Newton's J^T J (documented).
+    from dofjax._autodiff import value_and_jacobian
+
+    rgb, depth = scene()
+
+    def residual(y, args):
+        cam = CAM.replace(focus_distance=1.0 / y[0], aperture_radius=jnp.exp(y[1]))
+        return (blur_model(rgb, depth, cam) - args).reshape(-1)
+
+    y = jnp.array([1 / 1.7, np.log(0.08)])
+    args = jnp.full((N, N, 3), 0.3)
+    want = jax.jacfwd(residual)(y, args)
+    value, jac = value_and_jacobian(residual, y, args)
+    np.testing.assert_allclose(value, residual(y, args), rtol=1e-14)
+    np.testing.assert_allclose(jac, want, rtol=1e-12, atol=1e-14)
+    for mode in (jax.jacfwd, jax.jacrev):
+        got = mode(lambda y: value_and_jacobian(residual, y, args)[0])(y)
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(
+            mode(lambda a: jnp.sum(value_and_jacobian(residual, y, a)[0] ** 2))(args),
+            mode(lambda a: jnp.sum(residual(y, a) ** 2))(args), rtol=1e-10)
+    # central finite differences of the value (float64)
+    h = 1e-6
+    for k in range(2):
+        e = jnp.zeros(2).at[k].set(h)
+        fd = (residual(y + e, args) - residual(y - e, args)) / (2 * h)
+        np.testing.assert_allclose(jac[:, k], fd, rtol=1e-5, atol=1e-8)
+    hess = jax.hessian(lambda y: 0.5 * jnp.sum(value_and_jacobian(residual, y, args)[0] ** 2))(y)
+    np.testing.assert_allclose(hess, want.T @ want, rtol=1e-10)
+
+
 @pytest.mark.parametrize(
     "solver", ["gauss_newton", pytest.param("dogleg", marks=pytest.mark.slow), "bfgs"])
 def test_other_solvers(solver):
