@@ -63,19 +63,23 @@ def test_noise_free_recovery():
     assert res.message == "ok"
 
 
-def test_dense_jacobian_residual_derivatives():
-    # The solvers' residual differentiates through a Jacobian materialised by jacfwd
-    # (_autodiff.dense_jacobian): forward and reverse mode must equal plain autodiff.
-    from dofjax._autodiff import dense_jacobian as _dense_jacobian
-
+def _residual_problem():
+    """A residual of (1/d, log A) over the test scene, a point and its args (the target)."""
     rgb, depth = scene()
 
     def residual(y, args):
         cam = CAM.replace(focus_distance=1.0 / y[0], aperture_radius=jnp.exp(y[1]))
         return (blur_model(rgb, depth, cam) - args).reshape(-1)
 
-    y = jnp.array([1 / 1.7, np.log(0.08)])
-    args = jnp.full((N, N, 3), 0.3)
+    return residual, jnp.array([1 / 1.7, np.log(0.08)]), jnp.full((N, N, 3), 0.3)
+
+
+def test_dense_jacobian_residual_derivatives():
+    # The solvers' residual differentiates through a Jacobian materialised by jacfwd
+    # (_autodiff.dense_jacobian): forward and reverse mode must equal plain autodiff.
+    from dofjax._autodiff import dense_jacobian as _dense_jacobian
+
+    residual, y, args = _residual_problem()
     want = jax.jacfwd(residual)(y, args)
     got_fwd = jax.jacfwd(lambda y: _dense_jacobian(residual, y, args))(y)
     got_rev = jax.jacrev(lambda y: _dense_jacobian(residual, y, args))(y)
@@ -101,14 +105,7 @@ def test_value_and_jacobian_derivatives():
     # derivative of the loss is Gauss-Newton's J^T J (documented).
     from dofjax._autodiff import value_and_jacobian
 
-    rgb, depth = scene()
-
-    def residual(y, args):
-        cam = CAM.replace(focus_distance=1.0 / y[0], aperture_radius=jnp.exp(y[1]))
-        return (blur_model(rgb, depth, cam) - args).reshape(-1)
-
-    y = jnp.array([1 / 1.7, np.log(0.08)])
-    args = jnp.full((N, N, 3), 0.3)
+    residual, y, args = _residual_problem()
     want = jax.jacfwd(residual)(y, args)
     value, jac = value_and_jacobian(residual, y, args)
     np.testing.assert_allclose(value, residual(y, args), rtol=1e-14)
