@@ -541,8 +541,9 @@ def _scan(y_scan, modes, values):
     `y_scan` holds points evenly spaced in u across its bounds and the scene's most common
     inverse depths (`_depth_modes`), sorted by u, each with its best aperture at the
     multi-start level. Their full-resolution losses `values` (forward passes only) are
-    compared along the grid, and the `_SCAN_KEEP` lowest local minima are returned with their losses (+inf for
-    slots without one); of equal neighbours (a repeated mode) only the first counts. The points
+    compared along the grid, and the `_SCAN_KEEP` lowest local minima are returned with their
+    losses (+inf for slots without one); of equal neighbours (a repeated mode) only the first
+    counts. The points
     at the indices `modes` (the scene's most common inverse depths, `_depth_modes`) come first,
     whatever their loss: the fit screens those within `_MODE_RATIO` of the best other
     candidate's loss even when they do not rank among the lowest (a basin there can be narrow
