@@ -36,22 +36,21 @@ def _dense_jacobian_jvp(fn, primals, tangents):
     y, args = primals
     dy, dargs = tangents
     jac, out = jax.jacfwd(lambda y_: (fn(y_, args),) * 2, has_aux=True)(y)
-    # (in the output's dtype: a float32 image of float64 parameters has float32 tangents)
+    return out, _tangent(fn, y, args, dy, dargs, out, jac)
+
+
+def _tangent(fn, y, args, dy, dargs, out, jac):
+    """fn's tangent: `jac @ dy`, plus plain forward mode through fn for the args' tangents
+    (skipped when they are all symbolic zeros); in the output's dtype (a float32 image of
+    float64 parameters has float32 tangents)."""
     dout = (jnp.zeros_like(out) if _is_zero(dy)
             else jnp.tensordot(jac, dy, axes=1).astype(out.dtype))
-    return out, dout + _args_tangent(fn, y, args, dargs, out.dtype)
-
-
-def _args_tangent(fn, y, args, dargs, dtype):
-    """What the args' tangents add to fn's: plain forward mode through fn (0 if they are all
-    symbolic zeros)."""
-    leaves = jax.tree_util.tree_leaves(dargs, is_leaf=_is_zero)
-    if all(_is_zero(t) for t in leaves):
-        return 0.0
+    if all(_is_zero(t) for t in jax.tree_util.tree_leaves(dargs, is_leaf=_is_zero)):
+        return dout
     dargs = jax.tree_util.tree_map(
         lambda t: jnp.zeros(t.aval.shape, t.aval.dtype) if _is_zero(t) else t, dargs,
         is_leaf=_is_zero)
-    return jax.jvp(lambda a: fn(y, a), (args,), (dargs,))[1].astype(dtype)
+    return dout + jax.jvp(lambda a: fn(y, a), (args,), (dargs,))[1].astype(out.dtype)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
@@ -76,7 +75,4 @@ def _value_and_jacobian_jvp(fn, primals, tangents):
     y, args = primals
     dy, dargs = tangents
     out, jac = value_and_jacobian(fn, y, args)
-    dout = (jnp.zeros_like(out) if _is_zero(dy)
-            else jnp.tensordot(jac, dy, axes=1).astype(out.dtype))
-    dout = dout + _args_tangent(fn, y, args, dargs, out.dtype)
-    return (out, jac), (dout, jnp.zeros_like(jac))
+    return (out, jac), (_tangent(fn, y, args, dy, dargs, out, jac), jnp.zeros_like(jac))

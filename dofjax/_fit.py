@@ -41,9 +41,10 @@ How the fit works:
   exceeds the best one's by less than `ambiguity_threshold * s^2` (a likelihood-ratio test; s^2
   is the residual variance), the result is flagged `ambiguous` and both minima are reported.
 - Uncertainty: covariance = s^2 (J^T J)^-1 with J = d residual / d (d, A) in world units, the
-  polish's Jacobian at the optimum by the chain rule (no further pass through the model). The columns of J are normalised before the (SVD) inverse; a
-  normalised condition number above `max_condition`, a parameter at its bound, or a solution whose
-  largest CoC is below a quarter pixel (the target looks sharp) gives `identifiable=False`.
+  polish's Jacobian at the optimum by the chain rule (no further pass through the model). The
+  columns of J are normalised before the (SVD) inverse; a normalised condition number above
+  `max_condition`, a parameter at its bound, or a solution whose largest CoC is below a quarter
+  pixel (the target looks sharp) gives `identifiable=False`.
 """
 
 from __future__ import annotations
@@ -543,11 +544,11 @@ def _scan(y_scan, modes, values):
     multi-start level. Their full-resolution losses `values` (forward passes only) are
     compared along the grid, and the `_SCAN_KEEP` lowest local minima are returned with their
     losses (+inf for slots without one); of equal neighbours (a repeated mode) only the first
-    counts. The points
-    at the indices `modes` (the scene's most common inverse depths, `_depth_modes`) come first,
-    whatever their loss: the fit screens those within `_MODE_RATIO` of the best other
-    candidate's loss even when they do not rank among the lowest (a basin there can be narrow
-    in the aperture too, so the grid aperture's loss understates it).
+    counts. The points at the indices `modes` (the scene's most common inverse depths,
+    `_depth_modes`) come first, whatever their loss: the fit screens those within
+    `_MODE_RATIO` of the best other candidate's loss even when they do not rank among the
+    lowest (a basin there can be narrow in the aperture too, so the grid aperture's loss
+    understates it).
 
     At 256x256 the true basin in u is often narrower than the spacing of the 8 starts, and the
     downsampled levels' minima lie elsewhere when the blur is a pixel or two: in the 100-case
