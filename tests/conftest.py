@@ -10,6 +10,7 @@ hit is the same executable. It is set through the environment too, so subprocess
 `DOFJAX_TEST_JAX_CACHE` to a directory to choose where it lives, or to "" to turn it off.
 """
 
+import getpass
 import os
 import tempfile
 
@@ -17,9 +18,18 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+
+def _user() -> str:
+    """The login name for the cache directory's name (os.getuid does not exist on Windows)."""
+    try:
+        return getpass.getuser()
+    except (KeyError, OSError):  # no name for this uid (some containers)
+        return "user"
+
+
 _CACHE = os.environ.get(
     "DOFJAX_TEST_JAX_CACHE",
-    os.path.join(tempfile.gettempdir(), f"dofjax-test-jax-cache-{os.getuid()}"))
+    os.path.join(tempfile.gettempdir(), f"dofjax-test-jax-cache-{_user()}"))
 if _CACHE:
     _settings = {"jax_compilation_cache_dir": _CACHE,
                  "jax_persistent_cache_min_compile_time_secs": 0.2,
