@@ -3,9 +3,11 @@
     python benchmarks/defocus.py                  # both tables -> benchmarks/results/defocus.md
     python benchmarks/defocus.py --skip-accuracy  # speed only
 
-Speed: 512x512 RGB whose |CoC| reaches 16 px, median of repeated runs after JIT warm-up, each
-interleaved with the floor `scipy.signal.fftconvolve(image, disc radius 16)` so that load from
-other processes hits both alike; compile time separate. Accuracy: every example scene with a camera,
+Speed: 512x512 RGB whose |CoC| reaches 16 px, median of repeated runs after JIT warm-up. Each
+repeat times the floor `scipy.signal.fftconvolve(image, disc radius 16)`, the forward pass, the
+jacfwd and the gradient back to back, and the ratios ("x scipy", "x forward") are medians of the
+per-repeat ratios, so load from other processes hits both sides of a ratio alike; compile time
+(first call minus the median run) separate. Accuracy: every example scene with a camera,
 its aperture scaled so the largest |CoC| is --max-coc px, against `render_reference`; rows for
 dofjax with peeled layers, dofjax single-layer RGB-D, and the seed algorithm (Yu 2004).
 """
@@ -27,20 +29,6 @@ import dofjax
 from dofjax._seed import seed_defocus
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-
-
-def _median_ratio(fn, base, repeats):
-    fn()
-    base()
-    ts, bs = [], []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t0)
-        t0 = time.perf_counter()
-        base()
-        bs.append(time.perf_counter() - t0)
-    return float(np.median(ts)), float(np.median(bs))
 
 
 def speed(size: int, max_coc: float, repeats: int, dtype, method="pyramid"):
@@ -66,18 +54,34 @@ def speed(size: int, max_coc: float, repeats: int, dtype, method="pyramid"):
     fwd = jax.jit(lambda p: f(p[0], p[1]))
     jac = jax.jit(jax.jacfwd(lambda p: f(p[0], p[1])))
     grad = jax.jit(jax.grad(lambda p: jnp.mean((f(p[0], p[1]) - target) ** 2)))
-    rows = []
-    t_fwd = None
-    for name, fn in (("forward", fwd), ("jacfwd (focus, aperture)", jac),
-                     ("grad of a scalar loss", grad)):
+    fns = {"forward": fwd, "jacfwd (focus, aperture)": jac, "grad of a scalar loss": grad}
+    compile_s = {}
+    for name, fn in fns.items():
         t0 = time.perf_counter()
         jax.block_until_ready(fn(p))
-        compile_s = time.perf_counter() - t0
-        t, b = _median_ratio(lambda: jax.block_until_ready(fn(p)), base, repeats)
-        if t_fwd is None:
-            t_fwd = (t, b)
-        rows.append((f"{method}: {name}", t * 1e3, b * 1e3, t / b, (t / b) / (t_fwd[0] / t_fwd[1]),
-                     compile_s))
+        compile_s[name] = time.perf_counter() - t0
+    # One loop: each repeat times the floor and every program back to back, so the ratios of
+    # a repeat share its load (a derivative's "x forward" is the median of its per-repeat ratio
+    # to that repeat's forward pass, not a ratio of two separately normalised medians).
+    base()
+    times = {name: [] for name in fns}
+    floor = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        base()
+        floor.append(time.perf_counter() - t0)
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(p))
+            times[name].append(time.perf_counter() - t0)
+    floor = np.asarray(floor)
+    rows = []
+    for name, ts in times.items():
+        ts = np.asarray(ts)
+        rows.append((f"{method}: {name}", float(np.median(ts)) * 1e3, float(np.median(floor)) * 1e3,
+                     float(np.median(ts / floor)),
+                     float(np.median(ts / np.asarray(times["forward"]))),
+                     compile_s[name] - float(np.median(ts))))
     return rows
 
 

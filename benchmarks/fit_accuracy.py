@@ -116,6 +116,8 @@ def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None) -> dict:
     t = time.perf_counter()
     extra = {k: getattr(args, k) for k in ("screen_steps", "scan_points")
              if getattr(args, k) is not None}
+    if getattr(args, "loss", "l2") != "l2":
+        extra["loss"] = args.loss
     res = dofjax.fit_focus(target, *sharp, bounds=bounds, mask=mask, window=args.window,
                            starts=args.starts, **extra)
     seconds = time.perf_counter() - t
@@ -178,7 +180,7 @@ def _command() -> str:
 def _header(args, what: str, sharp_spp: int | None = None) -> str:
     return (f"# fit_focus accuracy: {what}\n\n"
             f"{args.size}x{args.size}, data_gen seed {args.seed}, window {args.window:g} px, "
-            f"starts {args.starts}, screen_steps "
+            f"starts {args.starts}, loss {args.loss}, screen_steps "
             f"{'default' if args.screen_steps is None else args.screen_steps}, scan_points "
             f"{'default' if args.scan_points is None else args.scan_points}, "
             f"coc_reach x{args.coc_reach:g}, sharp spp "
@@ -524,6 +526,32 @@ def edge_mask(depth: np.ndarray, band: float) -> np.ndarray | None:
     return distance_transform_edt(~edge) >= band
 
 
+# |CoC| bins (px, at the true camera) of the mismatch decomposition, off depth edges
+MISMATCH_BINS = ((0.0, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, math.inf))
+MISMATCH_EDGE_PX = 3.0
+
+
+def mismatch_split(residual, depth, coc, weight) -> dict:
+    """Where the model differs from the reference at the true camera: the share of the squared
+    residual (over the `weight` pixels) within MISMATCH_EDGE_PX of a depth edge of the sharp
+    render (`edge_mask`), and in each |CoC| bin of MISMATCH_BINS off the edges, with the
+    fraction of pixels and the rms there (image units)."""
+    e2 = np.sum(np.square(residual), axis=-1) * weight
+    total = float(e2.sum())
+    off = edge_mask(depth, MISMATCH_EDGE_PX)
+    edge = np.zeros(depth.shape, bool) if off is None else ~off
+    regions = {"edges": edge}
+    for lo, hi in MISMATCH_BINS:
+        regions[f"c {lo:g}-{hi:g} px"] = ~edge & (np.abs(coc) >= lo) & (np.abs(coc) < hi)
+    out = {}
+    for name, m in regions.items():
+        w = weight * m
+        out[name] = {"pixels": float(w.sum() / weight.sum()),
+                     "share": float(e2[m].sum() / total) if total > 0 else 0.0,
+                     "rms": float(np.sqrt(e2[m].sum() / (3 * w.sum()))) if w.sum() > 0 else 0.0}
+    return out
+
+
 def sharp_rgbd(case: dict, args):
     """The fit's sharp input: None (the case's visible-surface rgb and depth: `--ref-layers 0`),
     or `dofjax.render(scene, pinhole, spp=--ref-sharp-spp, layers=--ref-layers)`: the RGBD whose
@@ -606,6 +634,8 @@ def reference(args) -> None:
             wr = weight[..., None] * np.ones_like(target)
             return float(np.sqrt(np.sum(wr * r * r) / np.sum(wr * target * target)))
 
+        coc = np.asarray(dofjax.coc_radius(inputs[1], case["camera"]))
+        row["mismatch"] = mismatch_split(at_truth, np.asarray(case["depth"]), coc, w)
         row.update(reference_seconds=None if cached else render_s, max_coc_px=case["max_coc_px"],
                    ref_layers=args.ref_layers, ref_border_px=band,
                    ref_sharp_spp=args.ref_sharp_spp, ref_edge_mask_px=args.ref_edge_mask,
@@ -659,6 +689,16 @@ def reference(args) -> None:
         lines.append(f"| {kind} | {len(rs)} | "
                      f"{np.median(np.abs([r['rel_err_focus_distance'] for r in rs])):.2%} | "
                      f"{np.median(np.abs([r['rel_err_aperture_radius'] for r in rs])):.2%} |")
+    regions = list(rows[0]["mismatch"]) if rows else []
+    lines += ["\nWhere the model differs from the reference at the true camera (fitted pixels): "
+              f"within {MISMATCH_EDGE_PX:g} px of a depth edge of the sharp render, and off the "
+              "edges by |CoC| (px, true camera). Each cell: share of the squared residual / "
+              "share of the pixels / rms there (image units).\n",
+              "| index | kind | " + " | ".join(regions) + " |", "|---|---|" + "---|" * len(regions)]
+    for r in rows:
+        cells = [f"{100 * m['share']:.0f} % / {100 * m['pixels']:.0f} % / {m['rms']:.4f}"
+                 for m in r["mismatch"].values()]
+        lines.append(f"| {r['index']} | {r['kind']} | " + " | ".join(cells) + " |")
     name = "reference_truth_start" if args.start_at_truth else "reference"
     if args.ref_tag:
         name += f"_{args.ref_tag}"
@@ -704,6 +744,8 @@ def main(argv=None) -> None:
                    help="fit_focus screen_steps (default: the library's)")
     p.add_argument("--scan-points", type=int, default=None,
                    help="fit_focus scan_points (default: the library's)")
+    p.add_argument("--loss", default="l2", choices=("l2", "huber", "cauchy"),
+                   help="fit_focus loss (robust losses with their automatic scale)")
     p.add_argument("--sharp-spp", type=int, default=1, help="samples per pixel of the sharp render")
     p.add_argument("--noise-scenes", type=int, default=3)
     p.add_argument("--draws", type=int, default=50)
