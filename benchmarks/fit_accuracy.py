@@ -4,7 +4,7 @@ reference targets.
     python benchmarks/fit_accuracy.py --suite     [--cases 100] [--size 256]
     python benchmarks/fit_accuracy.py --noise     [--noise-scenes 3] [--draws 50] [--sigma 0.01]
     python benchmarks/fit_accuracy.py --reference [--ref-cases 10] [--spp 1024] [--ref-layers 3]
-        [--ref-border auto] [--ref-sharp-spp 64] [--start-at-truth]
+        [--ref-border auto] [--ref-sharp-spp 64] [--start-at-truth] [--loss l2|huber|cauchy]
     python benchmarks/fit_accuracy.py --suite --cases 5 --size 64       # quick check, ~1-2 min
 
 No part flag runs all three. Scenes and cameras are data_gen samples (`data_gen.build_sample` of
@@ -33,7 +33,11 @@ c. --reference: targets from `dofjax.render_reference` at `--spp` (cached in
    (default 64) with `--ref-layers` peeled layers (default 3; with the mirror layer), and a band
    of `--ref-border` px at the frame is masked out (default "auto": ceil(window) + 1, see
    `border_px`). `--ref-layers 0 --ref-border 0 --ref-sharp-spp 16` is the earlier
-   configuration (visible surface only, every pixel).
+   configuration (visible surface only, every pixel). The table ends with where the model
+   differs from the reference at the true camera (`mismatch_split`: near depth edges, and off
+   them by |CoC|).
+
+`--loss huber|cauchy` fits with a robust loss (its scale estimated from the data) in every part.
 
 Writes benchmarks/results/fit_accuracy_{suite,noise,reference}.md, .json (per-case rows) and .png
 (`--out` another directory); suite and noise results of a size other than 64 get a `_SIZE` suffix
