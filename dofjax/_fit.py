@@ -460,6 +460,29 @@ def _polish(state, has_alt, data, camera, param, spec, model, delta0, rtol, atol
     return pair, pair_loss, pair_steps, pair_ok, delta, jacs
 
 
+def _refine_aperture(y_apertures: Array, losses: Array) -> Array:
+    """The aperture (solver coordinate) of the lowest of `losses` at `y_apertures`: the guess's
+    (first) or the grid's (the rest, evenly spaced in log A), the grid's lowest moved to the
+    vertex of the parabola through it and its two neighbours (in log A).
+
+    The grid is ~3x apart in A: a basin whose aperture falls between two grid values looked up
+    to several times worse than one whose aperture sits on a grid value, and the scan ranked it
+    below a shallower wrong minimum (a lens-reference target at 128x128: d -41 % reported "ok",
+    with the true basin's loss 27 % lower). The vertex costs no further pass of the model."""
+    g = losses[1:]
+    n = g.shape[0]
+    j = jnp.argmin(g)
+    a, b, c = g[jnp.maximum(j - 1, 0)], g[j], g[jnp.minimum(j + 1, n - 1)]
+    curv = a - 2.0 * b + c
+    inner = (j > 0) & (j < n - 1) & (curv > 0) & jnp.isfinite(a + b + c)
+    shift = jnp.clip(0.5 * (a - c) / jnp.where(inner, curv, 1.0), -0.5, 0.5)
+    frac = 0.5 * (1.0 + jnp.sin(y_apertures[1:]))  # the bound map of `_Param`
+    step = frac[1] - frac[0] if n > 1 else 0.0
+    vertex = jnp.clip(frac[j] + jnp.where(inner, shift, 0.0) * step, 1e-3, 1.0 - 1e-3)
+    y_vertex = jnp.arcsin(2.0 * vertex - 1.0).astype(y_apertures.dtype)
+    return jnp.where(losses[0] < b, y_apertures[0], y_vertex)
+
+
 def _pick(u_end, losses, u_scene):
     """Index of the best end point and of the best one on the other side of u_scene."""
     best = jnp.argmin(losses)
@@ -597,7 +620,7 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
         def best_aperture(y):
             cand = jnp.broadcast_to(y, (y_apertures.shape[0],) + y.shape).at[:, ai].set(
                 y_apertures)
-            return y_apertures[jnp.argmin(jax.vmap(grid_loss)(cand))]
+            return _refine_aperture(y_apertures, jax.vmap(grid_loss)(cand))
 
         return ys.at[:, ai].set(jax.lax.map(best_aperture, ys))
 
