@@ -608,30 +608,38 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
         r = _residual_ul(param.to_ul(y, spec.free), src, cam1, model1, spec.loss, delta0)
         return jnp.sum(r * r)
 
-    def with_best_aperture(ys):
+    def with_best_aperture(ys, refine):
         # Each start's aperture is the best of a grid in log A (plus the guess) by the loss at
         # the multi-start level: from an aperture far below the truth every pixel looks sharp,
         # the loss is flat in the focus and the start cannot find the basin (the noise study in
-        # benchmarks/fit_accuracy.py lost 27 of 28 such fits before this).
+        # benchmarks/fit_accuracy.py lost 27 of 28 such fits before this). Where `refine`
+        # (the scan points), the grid's best moves to the vertex of a parabola through it and
+        # its neighbours (`_refine_aperture`).
         if y_apertures is None:
             return ys
         ai = spec.free.index(1)
 
-        def best_aperture(y):
+        def best_aperture(y_refine):
+            y, r = y_refine
             cand = jnp.broadcast_to(y, (y_apertures.shape[0],) + y.shape).at[:, ai].set(
                 y_apertures)
-            return _refine_aperture(y_apertures, jax.vmap(grid_loss)(cand))
+            losses = jax.vmap(grid_loss)(cand)
+            return jnp.where(r, _refine_aperture(y_apertures, losses),
+                             y_apertures[jnp.argmin(losses)])
 
-        return ys.at[:, ai].set(jax.lax.map(best_aperture, ys))
+        return ys.at[:, ai].set(jax.lax.map(best_aperture, (ys, refine)))
 
+    n_starts = y_starts.shape[0]
     if y_scan is not None:
         y_scan, modes = y_scan
         n_modes = modes.shape[0]
         # one pass over starts and scan points (one copy of the model in the program)
-        both = with_best_aperture(jnp.concatenate([y_starts, y_scan]))
-        y_starts, y_scan = both[:y_starts.shape[0]], both[y_starts.shape[0]:]
+        both = with_best_aperture(
+            jnp.concatenate([y_starts, y_scan]),
+            jnp.arange(n_starts + y_scan.shape[0]) >= n_starts)
+        y_starts, y_scan = both[:n_starts], both[n_starts:]
     else:
-        y_starts = with_best_aperture(y_starts)
+        y_starts = with_best_aperture(y_starts, jnp.zeros(n_starts, bool))
     # Every start is solved (vmapped, loose tolerance): picking the best grid points and solving
     # only those lost 2 of 12 noise-free cases at 64x64 to wrong basins (0 of 12 this way).
     ys, loss, steps, ok = _solve_many(y_starts, src, cam1, param, spec1, model1, delta0, r1, a1)
@@ -1276,7 +1284,8 @@ def fit_focus(
         starts: number of multi-start points (the user's guess plus starts - 1 grid points in
             u = 1/d inside the bounds), solved as one vmapped batch. Each start's aperture is
             the best (lowest multi-start-level loss) of the guess and 6 log-spaced values inside
-            the aperture bounds.
+            the aperture bounds, the best grid value moved to the vertex of the parabola (in
+            log A) through it and its neighbours.
         rtol, atol: optimistix tolerances for the final (full-resolution) solve: a step ends it
             when it moves the solver's internal coordinates (sine-mapped u and log A) by less
             than atol + rtol |y| and every (mean-scaled) residual by less than atol + rtol |r|
