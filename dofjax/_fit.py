@@ -460,29 +460,6 @@ def _polish(state, has_alt, data, camera, param, spec, model, delta0, rtol, atol
     return pair, pair_loss, pair_steps, pair_ok, delta, jacs
 
 
-def _refine_aperture(y_apertures: Array, losses: Array) -> Array:
-    """The aperture (solver coordinate) of the lowest of `losses` at `y_apertures`: the guess's
-    (first) or the grid's (the rest, evenly spaced in log A), the grid's lowest moved to the
-    vertex of the parabola through it and its two neighbours (in log A).
-
-    The grid is ~3x apart in A: a basin whose aperture falls between two grid values looked up
-    to several times worse than one whose aperture sits on a grid value, and the scan ranked it
-    below a shallower wrong minimum (a lens-reference target at 128x128: d -41 % reported "ok",
-    with the true basin's loss 27 % lower). The vertex costs no further pass of the model."""
-    g = losses[1:]
-    n = g.shape[0]
-    j = jnp.argmin(g)
-    a, b, c = g[jnp.maximum(j - 1, 0)], g[j], g[jnp.minimum(j + 1, n - 1)]
-    curv = a - 2.0 * b + c
-    inner = (j > 0) & (j < n - 1) & (curv > 0) & jnp.isfinite(a + b + c)
-    shift = jnp.clip(0.5 * (a - c) / jnp.where(inner, curv, 1.0), -0.5, 0.5)
-    frac = 0.5 * (1.0 + jnp.sin(y_apertures[1:]))  # the bound map of `_Param`
-    step = frac[1] - frac[0] if n > 1 else 0.0
-    vertex = jnp.clip(frac[j] + jnp.where(inner, shift, 0.0) * step, 1e-3, 1.0 - 1e-3)
-    y_vertex = jnp.arcsin(2.0 * vertex - 1.0).astype(y_apertures.dtype)
-    return jnp.where(losses[0] < b, y_apertures[0], y_vertex)
-
-
 def _pick(u_end, losses, u_scene):
     """Index of the best end point and of the best one on the other side of u_scene."""
     best = jnp.argmin(losses)
@@ -608,38 +585,30 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
         r = _residual_ul(param.to_ul(y, spec.free), src, cam1, model1, spec.loss, delta0)
         return jnp.sum(r * r)
 
-    def with_best_aperture(ys, refine):
+    def with_best_aperture(ys):
         # Each start's aperture is the best of a grid in log A (plus the guess) by the loss at
         # the multi-start level: from an aperture far below the truth every pixel looks sharp,
         # the loss is flat in the focus and the start cannot find the basin (the noise study in
-        # benchmarks/fit_accuracy.py lost 27 of 28 such fits before this). Where `refine`
-        # (the scan points), the grid's best moves to the vertex of a parabola through it and
-        # its neighbours (`_refine_aperture`).
+        # benchmarks/fit_accuracy.py lost 27 of 28 such fits before this).
         if y_apertures is None:
             return ys
         ai = spec.free.index(1)
 
-        def best_aperture(y_refine):
-            y, r = y_refine
+        def best_aperture(y):
             cand = jnp.broadcast_to(y, (y_apertures.shape[0],) + y.shape).at[:, ai].set(
                 y_apertures)
-            losses = jax.vmap(grid_loss)(cand)
-            return jnp.where(r, _refine_aperture(y_apertures, losses),
-                             y_apertures[jnp.argmin(losses)])
+            return y_apertures[jnp.argmin(jax.vmap(grid_loss)(cand))]
 
-        return ys.at[:, ai].set(jax.lax.map(best_aperture, (ys, refine)))
+        return ys.at[:, ai].set(jax.lax.map(best_aperture, ys))
 
-    n_starts = y_starts.shape[0]
     if y_scan is not None:
         y_scan, modes = y_scan
         n_modes = modes.shape[0]
         # one pass over starts and scan points (one copy of the model in the program)
-        both = with_best_aperture(
-            jnp.concatenate([y_starts, y_scan]),
-            jnp.arange(n_starts + y_scan.shape[0]) >= n_starts)
-        y_starts, y_scan = both[:n_starts], both[n_starts:]
+        both = with_best_aperture(jnp.concatenate([y_starts, y_scan]))
+        y_starts, y_scan = both[:y_starts.shape[0]], both[y_starts.shape[0]:]
     else:
-        y_starts = with_best_aperture(y_starts, jnp.zeros(n_starts, bool))
+        y_starts = with_best_aperture(y_starts)
     # Every start is solved (vmapped, loose tolerance): picking the best grid points and solving
     # only those lost 2 of 12 noise-free cases at 64x64 to wrong basins (0 of 12 this way).
     ys, loss, steps, ok = _solve_many(y_starts, src, cam1, param, spec1, model1, delta0, r1, a1)
@@ -1284,8 +1253,7 @@ def fit_focus(
         starts: number of multi-start points (the user's guess plus starts - 1 grid points in
             u = 1/d inside the bounds), solved as one vmapped batch. Each start's aperture is
             the best (lowest multi-start-level loss) of the guess and 6 log-spaced values inside
-            the aperture bounds, the best grid value moved to the vertex of the parabola (in
-            log A) through it and its neighbours.
+            the aperture bounds.
         rtol, atol: optimistix tolerances for the final (full-resolution) solve: a step ends it
             when it moves the solver's internal coordinates (sine-mapped u and log A) by less
             than atol + rtol |y| and every (mean-scaled) residual by less than atol + rtol |r|

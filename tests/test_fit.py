@@ -362,33 +362,6 @@ def test_depth_modes_are_the_most_common_inverse_depths():
     assert _depth_modes(tilted, 1)[0] == pytest.approx(np.median(tilted))
 
 
-
-def test_refine_aperture_finds_the_vertex_between_grid_apertures():
-    from dofjax._fit import _APERTURE_GRID, _refine_aperture
-
-    def y_of(frac):  # inverse of `_Param`'s bound map
-        return np.arcsin(2.0 * np.asarray(frac) - 1.0)
-
-    grid = (np.arange(_APERTURE_GRID) + 0.5) / _APERTURE_GRID
-    y_ap = jnp.asarray(y_of(np.concatenate([[0.05], grid])))
-
-    def pick(losses):
-        return 0.5 * (1.0 + float(np.sin(_refine_aperture(y_ap, jnp.asarray(losses)))))
-
-    # a loss quadratic in the bound fraction (log A): the vertex, not the nearest grid point
-    for best in (0.37, 0.5, 0.61):
-        losses = (np.concatenate([[0.05], grid]) - best) ** 2 + 1.0
-        assert pick(losses) == pytest.approx(best, abs=1e-5)
-    # lowest at the end of the grid: that grid point (no neighbour on the far side)
-    losses = np.concatenate([[9.0], 1.0 + grid])
-    assert pick(losses) == pytest.approx(grid[0], abs=1e-6)
-    # the guess's aperture wins when its loss is the lowest
-    losses[0] = 0.5
-    assert pick(losses) == pytest.approx(0.05, abs=1e-6)
-    # a neighbour at +inf (a non-finite loss): the grid point itself, never a NaN
-    losses = np.concatenate([[9.0], [3.0, 2.0, 1.0, np.inf, 2.0, 3.0]])
-    assert pick(losses) == pytest.approx(grid[2], abs=1e-6)
-
 # --- bad input: ValueError before any solver runs ------------------------------------------
 
 
