@@ -120,7 +120,7 @@ def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None) -> dict:
     t = time.perf_counter()
     extra = {k: getattr(args, k) for k in ("screen_steps", "scan_points")
              if getattr(args, k) is not None}
-    if getattr(args, "loss", "l2") != "l2":
+    if args.loss != "l2":
         extra["loss"] = args.loss
     res = dofjax.fit_focus(target, *sharp, bounds=bounds, mask=mask, window=args.window,
                            starts=args.starts, **extra)
