@@ -120,10 +120,8 @@ def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None) -> dict:
     t = time.perf_counter()
     extra = {k: getattr(args, k) for k in ("screen_steps", "scan_points")
              if getattr(args, k) is not None}
-    if args.loss != "l2":
-        extra["loss"] = args.loss
     res = dofjax.fit_focus(target, *sharp, bounds=bounds, mask=mask, window=args.window,
-                           starts=args.starts, **extra)
+                           starts=args.starts, loss=args.loss, **extra)
     seconds = time.perf_counter() - t
     row = {"seed": case["seed"], "index": case["index"], "kind": case["kind"],
            "identifiable_kind": bool(case["identifiable"]), "truth": case["truth"],
