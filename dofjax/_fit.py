@@ -90,6 +90,10 @@ _SCAN_KEEP = 3
 # a screened start this close (a fraction of the bounds, in every free parameter) to an earlier
 # one's end point, at no lower loss, stops: it is on its way into that minimum (`_ScreenLM`)
 _NEAR_END = 0.01
+# a screen stops when its next step would move the solver's coordinates by less than this (a
+# tenth of _SAME_END): it saved the last two steps of most screens, each one full Jacobian, at
+# points already within ~1e-5 of the minimum
+_SCREEN_STEP = 1e-4
 # Inverse depths of the scene's most common surfaces that join the u scan (`_depth_modes`), and
 # the histogram (bins across the u bounds, smallest share of the pixels) that finds them.
 _SCAN_MODES = 4
@@ -248,41 +252,11 @@ class _TrustRegion(optx.ClassicalTrustRegion):
         return step_size, accept | (level & ~first_step), result, state
 
 
-class _NoFirstStop:
-    """Mixin for optimistix solvers: never stop on the first step.
-
-    The first step only evaluates the initial point, and optimistix checks its Cauchy
-    criterion there against a zero previous residual and no move in y, so a start whose
-    residuals are all below `atol` (a noise-free target, a start near the minimum, a small
-    blur) "converged" at once wherever it was: the polish of 256x256 noise-free suite case 38
-    stopped 1.0e-4 (47 standard errors) from the truth.
-    """
-
-    def terminate(self, fn, y, args, options, state, tags):
-        done, result = super().terminate(fn, y, args, options, state, tags)
-        return done & (state.num_accepted_steps >= 2), result
-
-
-class _LM(_NoFirstStop, optx.LevenbergMarquardt):
-    pass
-
-
-class _GaussNewton(_NoFirstStop, optx.GaussNewton):
-    pass
-
-
-class _Dogleg(_NoFirstStop, optx.Dogleg):
-    pass
-
-
-class _BFGS(_NoFirstStop, optx.BFGS):
-    pass
-
-
-class _ScreenLM(_LM):
-    """Levenberg-Marquardt that also stops once it has come within `_NEAR_END` (a fraction of
-    the bounds, in every free parameter) of a minimum an earlier screen reached, at a loss no
-    lower than that minimum's: it is on its way into a basin the screen already knows.
+class _ScreenLM(optx.LevenbergMarquardt):
+    """Levenberg-Marquardt for the screens: it also stops once it has come within `_NEAR_END`
+    (a fraction of the bounds, in every free parameter) of a minimum an earlier screen reached,
+    at a loss no lower than that minimum's (it is on its way into a basin the screen already
+    knows), and once its next step would be below `_SCREEN_STEP`.
 
     The ends are `options["ends"]` (k, len(free)) in the solver's coordinates, with their
     losses `options["end_loss"]` (+inf: no end in that slot). On the quads scene of
@@ -290,27 +264,38 @@ class _ScreenLM(_LM):
     7 + 8 + 8 Jacobians at 256x256 for one minimum.
     """
 
+    @staticmethod
+    def known(y, options, state):
+        """Whether y (or the step it would take next) is near a known end at no lower loss."""
+        ends, end_loss = options["ends"], options["end_loss"]
+
+        def near(y_, radius):  # in fractions of the bounds (the map of `_Param`)
+            return jnp.all(0.5 * jnp.abs(jnp.sin(ends) - jnp.sin(y_)) < radius, axis=-1)
+
+        # here, or its next step lands (Gauss-Newton's guess of its minimum) on a known end
+        near = near(y, _NEAR_END) | near(state.y_eval, 0.2 * _NEAR_END)
+        loss = jnp.sum(jnp.square(state.f_info.residual))
+        return jnp.any(near & (loss >= end_loss)) & ~state.first_step
+
     def terminate(self, fn, y, args, options, state, tags):
         done, result = super().terminate(fn, y, args, options, state, tags)
-        ends, end_loss = options["ends"], options["end_loss"]
-        frac = 0.5 * (1.0 + jnp.sin(y))  # the bound map of `_Param`, per free parameter
-        frac_ends = 0.5 * (1.0 + jnp.sin(ends))
-        near = jnp.all(jnp.abs(frac_ends - frac) < _NEAR_END, axis=-1)
-        loss = jnp.sum(jnp.square(state.f_info.residual))
-        known = jnp.any(near & (loss >= end_loss))
-        return done | (known & ~state.first_step), result
+        # the step it would take next (after an accepted one) is below _SCREEN_STEP: the
+        # minimum is found as well as a screen needs (the polish goes on from there)
+        small = (state.num_steps_since_acceptance == 0) & (
+            jnp.max(jnp.abs(state.y_eval - y)) < _SCREEN_STEP) & ~state.first_step
+        return done | small | self.known(y, options, state), result
 
 
 def _make_solver(spec: _Spec, rtol: float, atol: float, floor=0.0, screen: bool = False):
     # ThinQR: LAPACK's batched QR deadlocks fit_focus_batch on several host devices (_linalg).
     if spec.solver == "lm":
-        lm = (_ScreenLM if screen else _LM)(rtol=rtol, atol=atol, linear_solver=ThinQR())
+        lm = (_ScreenLM if screen else optx.LevenbergMarquardt)(rtol=rtol, atol=atol, linear_solver=ThinQR())
         return eqx.tree_at(lambda s: s.search, lm, _TrustRegion(floor=floor))
     if spec.solver == "gauss_newton":
-        return _GaussNewton(rtol=rtol, atol=atol, linear_solver=ThinQR())
+        return optx.GaussNewton(rtol=rtol, atol=atol, linear_solver=ThinQR())
     if spec.solver == "dogleg":
-        return _Dogleg(rtol=rtol, atol=atol, linear_solver=ThinQR())
-    return _BFGS(rtol=rtol, atol=atol)
+        return optx.Dogleg(rtol=rtol, atol=atol, linear_solver=ThinQR())
+    return optx.BFGS(rtol=rtol, atol=atol)
 
 
 def _robust_transform(r: Array, loss: str, delta: Array) -> Array:
@@ -388,6 +373,9 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, ends=None):
     Jacobian of the residual w.r.t. the free parameters' (u, log A) at y: the one the solver
     built there (`value_and_jacobian`, the residual's auxiliary output), reused for the
     covariance instead of one more pass (and one more compiled copy) of the model.
+
+    `ends` = (end points, their losses) makes it a screen (`_ScreenLM`, LM only): it also stops
+    near a known end, and returns a sixth item, whether it did.
     """
     free = jnp.asarray(spec.free)
 
@@ -415,8 +403,12 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, ends=None):
         loss = 2.0 * f_info.f
     else:
         loss = jnp.sum(f_info.residual * f_info.residual)
-    return (sol.value, loss, sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
-            sol.aux)
+    out = (sol.value, loss, sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
+           sol.aux)
+    if ends is not None:  # and whether the screen stopped at a known minimum (`_ScreenLM`)
+        out += (_ScreenLM.known(sol.value, options, sol.state) if screen
+                else jnp.asarray(False),)
+    return out
 
 
 def _solve_many(y0s, data, camera, param, spec, model, delta, rtol, atol):
@@ -567,14 +559,17 @@ def _losses(ys, skip, data, camera, param, spec, delta0):
     return jax.lax.map(one, (ys, skip))
 
 
-def _screen(ys, loss, steps, dup, data, camera, param, spec, model, delta0, rtol, atol):
+def _screen(ys, loss, steps, dup, priority, data, camera, param, spec, model, delta0, rtol,
+            atol):
     """Every start refined on one (finer) level for up to spec.screen_steps steps, one after the
-    other (each stops when it has converged; vmapped, all would wait for the slowest).
+    other in the order of `priority` (lowest first; each stops when it has converged; vmapped,
+    all would wait for the slowest).
 
     Starts that sit in the same minimum as an earlier one (`_SAME_END`), or were copies on a
     coarser level (`dup`), are refined once: the copies keep their point and drop out of the
     pick (loss +inf). A start that comes near an end point of an earlier one at no lower loss
-    stops there (`_ScreenLM`) and drops out too. Returns (ys, loss, steps, ok, dup)."""
+    stops there (`_ScreenLM`) and drops out too: the lowest first, so that the others can
+    stop on their way into its minimum. Returns (ys, loss, steps, ok, dup)."""
     spec2 = dataclasses.replace(spec, max_steps=spec.screen_steps)
     dup = _dedupe(ys, dup)
     inf = jnp.asarray(jnp.inf, loss.dtype)
@@ -584,11 +579,9 @@ def _screen(ys, loss, steps, dup, data, camera, param, spec, model, delta0, rtol
         end_y, end_loss = ends
 
         def solve(_):
-            y, lo, st, ok, _ = _solve(ys[i], data, camera, param, spec2, model, delta0, rtol,
-                                      atol, ends=(end_y, end_loss))
+            y, lo, st, ok, _, known = _solve(ys[i], data, camera, param, spec2, model, delta0,
+                                             rtol, atol, ends=(end_y, end_loss))
             # stopped on the way into a known minimum: no new end, out of the pick
-            near = jnp.all(jnp.abs(jnp.sin(end_y) - jnp.sin(y)) < 2.0 * _NEAR_END, axis=-1)
-            known = jnp.any(near & (lo >= end_loss))
             return y, jnp.where(known, inf, lo), st, ok & ~known, known
 
         def skip(_):
@@ -598,9 +591,10 @@ def _screen(ys, loss, steps, dup, data, camera, param, spec, model, delta0, rtol
         ends = (end_y.at[i].set(y), end_loss.at[i].set(jnp.where(drop, inf, lo)))
         return ends, (y, lo, st, ok, drop)
 
+    order = jnp.argsort(jnp.where(dup, jnp.inf, priority))
     ends0 = (ys, jnp.full(ys.shape[0], jnp.inf, loss.dtype))
-    _, (ys, loss, steps2, ok, drop) = jax.lax.scan(
-        one, ends0, (jnp.arange(ys.shape[0]), dup))
+    _, out = jax.lax.scan(one, ends0, (order, dup[order]))
+    ys, loss, steps2, ok, drop = (x[jnp.argsort(order)] for x in out)
     return ys, loss, steps + steps2, ok, dup | drop
 
 
@@ -717,8 +711,11 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
                 best_other = jnp.min(jnp.where(is_mode, jnp.inf, full))
                 forced = is_mode & ~dup & (full <= _MODE_RATIO * best_other)
                 dup = ~(_lowest_apart(full, ys, param, spec) | forced)
-            ys, loss, steps, ok, dup = _screen(ys, loss, steps, dup, d_g, cam_g, param, spec,
-                                               model_g, delta0, r1, a1)
+            # the lowest loss on this level first (the full-resolution scan's, or the coarser
+            # level's)
+            priority = full if y_scan is not None and g == len(stages) - 2 else loss
+            ys, loss, steps, ok, dup = _screen(ys, loss, steps, dup, priority, d_g, cam_g,
+                                               param, spec, model_g, delta0, r1, a1)
     ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(ys)
     best, alt, has_alt = _pick(ul_end[:, 0], loss, u_scene)
     idx = jnp.stack([best, alt])
