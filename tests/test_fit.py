@@ -409,3 +409,36 @@ def test_bad_bounds_and_options():
     _bad("max_steps: must be an integer >= 1", max_steps=2.5)
     _bad("rtol: must be a number >= 0", rtol=-1e-6)
     _bad("atol: must be a number >= 0", atol=float("nan"))
+
+
+def test_screen_stops_on_the_way_into_a_known_minimum():
+    """`_ScreenLM` (the screens' solver) stops once it is near, or its next step lands on, an
+    end point an earlier screen reached at no lower loss; a known end at a higher loss (a
+    shallower minimum) does not stop it, nor does one elsewhere."""
+    import equinox as eqx
+    import optimistix as optx
+
+    from dofjax import _fit
+
+    y_min = jnp.array([0.3, -0.2])
+
+    def fn(y, args):  # nonlinear: LM takes several steps from y0
+        d = y - y_min
+        return jnp.stack([jnp.sinh(3.0 * d[0]), d[1] + d[0] ** 2])
+
+    def solve(ends, end_loss):
+        solver = eqx.tree_at(lambda s: s.search, _fit._ScreenLM(rtol=1e-4, atol=1e-8),
+                             _fit._TrustRegion())
+        sol = optx.least_squares(fn, solver, jnp.array([1.2, 0.9]), max_steps=50, throw=False,
+                                 options=dict(ends=ends, end_loss=end_loss))
+        return sol.value, int(sol.stats["num_steps"]), bool(
+            _fit._ScreenLM.known(sol.value, dict(ends=ends, end_loss=end_loss), sol.state))
+
+    y_free, n_free, known_free = solve(jnp.array([[-1.0, 1.0]]), jnp.array([0.0]))
+    assert not known_free and n_free >= 5
+    np.testing.assert_allclose(y_free, y_min, atol=1e-3)
+    y_in, n_in, known_in = solve(y_min[None], jnp.array([0.0]))
+    assert known_in and n_in < n_free
+    assert float(jnp.max(0.5 * jnp.abs(jnp.sin(y_in) - jnp.sin(y_min)))) < _fit._NEAR_END
+    _, n_high, known_high = solve(y_min[None], jnp.array([1e3]))
+    assert not known_high and n_high == n_free
