@@ -91,8 +91,8 @@ _SCAN_KEEP = 3
 # one's end point, at no lower loss, stops: it is on its way into that minimum (`_ScreenLM`)
 _NEAR_END = 0.01
 # a screen stops when its next step would move the solver's coordinates by less than this (a
-# tenth of _SAME_END): it saved the last two steps of most screens, each one full Jacobian, at
-# points already within ~1e-5 of the minimum
+# tenth of _SAME_END): it saves the last step of a converging screen (one full Jacobian) at a
+# point already within ~1e-4 of the minimum
 _SCREEN_STEP = 1e-4
 # first damping of the full-resolution screen, x max diag(J^T J) (`_TrustRegion`; the other
 # solves take 1, a first step about half Gauss-Newton's)
@@ -275,11 +275,11 @@ class _ScreenLM(optx.LevenbergMarquardt):
         """Whether y (or the step it would take next) is near a known end at no lower loss."""
         ends, end_loss = options["ends"], options["end_loss"]
 
-        def near(y_, radius):  # in fractions of the bounds (the map of `_Param`)
+        def close(y_, radius):  # in fractions of the bounds (the map of `_Param`)
             return jnp.all(0.5 * jnp.abs(jnp.sin(ends) - jnp.sin(y_)) < radius, axis=-1)
 
         # here, or its next step lands (Gauss-Newton's guess of its minimum) on a known end
-        near = near(y, _NEAR_END) | near(state.y_eval, 0.2 * _NEAR_END)
+        near = close(y, _NEAR_END) | close(state.y_eval, 0.2 * _NEAR_END)
         loss = jnp.sum(jnp.square(state.f_info.residual))
         return jnp.any(near & (loss >= end_loss)) & ~state.first_step
 
@@ -700,7 +700,8 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
         # when their loss is within _MODE_RATIO of the best other candidate's (see `_scan`).
         dup = jnp.zeros(ys.shape[0], bool)
         for g, (d_g, cam_g, model_g) in enumerate(stages[1:]):
-            if y_scan is not None and g == len(stages) - 2:
+            last = g == len(stages) - 2  # full resolution
+            if y_scan is not None and last:
                 # the end points' and the scan's full-resolution losses in one pass (one copy
                 # of the model in the program)
                 dup_ends = _dedupe(ys, dup)
@@ -724,8 +725,7 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
                 dup = ~(_lowest_apart(full, ys, param, spec) | forced)
             # the lowest loss on this level first (the full-resolution scan's, or the coarser
             # level's)
-            priority = full if y_scan is not None and g == len(stages) - 2 else loss
-            last = g == len(stages) - 2
+            priority = full if y_scan is not None and last else loss
             ys, loss, steps, ok, dup = _screen(ys, loss, steps, dup, priority, d_g, cam_g,
                                                param, spec, model_g, delta0, r1, a1,
                                                _SCREEN_DAMPING if last else 1.0)
