@@ -357,8 +357,13 @@ def _predict(ul: Array, data: _Data, camera: Camera, model: Callable) -> Array:
     cam = camera.replace(focus_distance=1.0 / ul[0], aperture_radius=jnp.exp(ul[1]))
     extras = {} if data.extras is None else data.extras.kwargs()
     # the solvers differentiate the residual through their own dense Jacobian (`_solve`), the
-    # covariance by jacfwd: the defocus's own one would only be nested inside
-    with plain_autodiff():
+    # covariance by jacfwd: the defocus's own one would only be nested inside.
+    # The abstract mesh in force is set explicitly: JAX traces a custom JVP rule (that of
+    # `value_and_jacobian`, which optimistix's Gauss-Newton family linearises) with it set (to
+    # the empty mesh when there is none) and everything else with it unset, and the jitted
+    # defocus's trace cache keys on that context: each resolution's model was traced twice
+    # (tracing + lowering of a 256x256 fit: 10.3 s with the misses, 7.7 s without).
+    with plain_autodiff(), jax.sharding.use_abstract_mesh(jax.sharding.get_abstract_mesh()):
         return model(data.rgb, data.depth, cam, **extras)
 
 
