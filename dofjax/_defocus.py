@@ -75,9 +75,11 @@ from ._kernels import (
 )
 from ._numerics import inverse_depth
 from ._rgbd import RGBD, Layers
+from ._lens import lens_defocus
+from ._lens import levels as lens_levels
 from ._sliced import sliced_defocus
 
-METHODS = ("pyramid", "sliced")
+METHODS = ("pyramid", "sliced", "lens")
 
 SKIP_COC = 0.25  # px: below this everywhere, blurring changes nothing visible
 
@@ -432,6 +434,11 @@ def plain_autodiff():
 
 def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blades, rotation, ratio,
          method="pyramid"):
+    if method == "lens":  # plain autodiff: sheet positions are constants, weights are cheap
+        out = lens_defocus(rgb, depth, camera, window=window, blades=blades, rotation=rotation,
+                           ratio=ratio, reflection=reflection, reflection_depth=reflection_depth,
+                           layers=layers)
+        return out, None
     if method == "sliced":
         def core(y, a):
             rgb, depth, camera, reflection, reflection_depth, layers = a
@@ -598,8 +605,9 @@ def defocus(
     out, _ = _run(rgb, depth, camera, reflection, reflection_depth, layers, win, blades, rotation,
                   ratio, method)
     if return_info:
-        plan = make_plan(win, blades, rotation, ratio)
-        return out, DefocusInfo(max_abs, win, False, clamped, len(plan.levels))
+        n = (len(lens_levels(win)) if method == "lens"
+             else len(make_plan(win, blades, rotation, ratio).levels))
+        return out, DefocusInfo(max_abs, win, False, clamped, n)
     return out
 
 
