@@ -158,7 +158,7 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
         prev = None
         for p in range(n):
             def tap(oy, ox, p=p):
-                return jax.lax.dynamic_slice(stack[p], (off[p, 0] + oy, off[p, 1] + ox, 0),
+                return jax.lax.dynamic_slice(stack[p], (off[p, 0] + oy, off[p, 1] + ox, jnp.int32(0)),
                                              (height, width, chans))
             fy, fx = frac[p, 0], frac[p, 1]
             g = ((1 - fy) * ((1 - fx) * tap(0, 0) + fx * tap(0, 1))
