@@ -120,6 +120,9 @@ def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None) -> dict:
     t = time.perf_counter()
     extra = {k: getattr(args, k) for k in ("screen_steps", "scan_points")
              if getattr(args, k) is not None}
+    method = getattr(args, "ref_method", None) if rgbd is not None else None
+    if method is not None:
+        extra["defocus_options"] = {"method": method}
     res = dofjax.fit_focus(target, *sharp, bounds=bounds, mask=mask, window=args.window,
                            starts=args.starts, loss=args.loss, **extra)
     seconds = time.perf_counter() - t
@@ -597,7 +600,7 @@ def reference(args) -> None:
 
     cfg = data_config(args.size, args.ref_sharp_spp, args.kinds)
     cases = identifiable_cases(cfg, args.seed, args.first, args.ref_cases)
-    model = dofjax.DefocusModel(window=args.window)
+    model = dofjax.DefocusModel(window=args.window, method=args.ref_method)
     forward = jax.jit(model)
     band = border_px(args)
     frame_mask = border_mask((args.size, args.size), band)
@@ -645,9 +648,10 @@ def reference(args) -> None:
                    rel_rms_at_truth=rel_rms(at_truth, w), rel_rms_at_fit=rel_rms(at_fit, w),
                    rel_rms_at_truth_frame=rel_rms(at_truth, np.ones_like(w)))
         rows.append(row)
-    model_text = ("the sliced defocus of the sharp RGB-D (visible surface only)"
+    model_text = (f"the {args.ref_method} defocus of the sharp RGB-D (visible surface only)"
                   if args.ref_layers <= 0 else
-                  f"the sliced defocus of the sharp RGBD with {args.ref_layers} peeled layers "
+                  f"the {args.ref_method} defocus of the sharp RGBD with {args.ref_layers} peeled "
+                  "layers "
                   "(what a blurred foreground uncovers) and the mirror layer")
     lines = [_header(args, f"lens-sampling reference targets, {args.spp} spp, {len(rows)} scenes",
                      args.ref_sharp_spp),
@@ -768,6 +772,9 @@ def main(argv=None) -> None:
                    "edge of the sharp render (see edge_mask); 0: off (default)")
     p.add_argument("--ref-tag", default="",
                    help="reference part: suffix of the output names, fit_accuracy_reference_TAG.*")
+    p.add_argument("--ref-method", default="sliced", choices=("sliced", "pyramid", "lens"),
+                   help="reference: the fit's defocus method (lens: slow, closest to the "
+                        "reference)")
     p.add_argument("--start-at-truth", action="store_true",
                    help="reference part, diagnostic: start the fit at the true camera (model "
                    "mismatch alone); writes fit_accuracy_reference_truth_start.*")

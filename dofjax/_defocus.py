@@ -73,10 +73,10 @@ from ._kernels import (
     moment_table,
     up2,
 )
-from ._numerics import inverse_depth
-from ._rgbd import RGBD, Layers
 from ._lens import lens_defocus
 from ._lens import levels as lens_levels
+from ._numerics import inverse_depth
+from ._rgbd import RGBD, Layers
 from ._sliced import sliced_defocus
 
 METHODS = ("pyramid", "sliced", "lens")
