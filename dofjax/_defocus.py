@@ -549,9 +549,12 @@ def defocus(
             8, 12, ..., 128); |c| beyond it is clamped to it. None: chosen from the image (host
             check; not possible under jit). Give it to call `defocus` inside `jax.jit`/`vmap`.
         return_info: also return a `DefocusInfo`.
-        method: "pyramid" (the layered pyramid above) or "sliced" (`_sliced.py`: depth slices
+        method: "pyramid" (the layered pyramid above), "sliced" (`_sliced.py`: depth slices
             composited by FFT products in one `lax.scan`; compiles in seconds, the fitter's
-            default). Both implement the same scatter model (DESIGN.md section 3).
+            default) or "lens" (`_lens.py`: the same slices read along `LENS_SAMPLES` rays per
+            pixel through points of the aperture, occlusion decided per ray: closest to the
+            lens-sampling reference behind blurred edges, and ~100x slower than "sliced").
+            All implement the scatter model of DESIGN.md section 3.
 
     Returns:
         (H, W, 3) defocused linear colour (and the info when asked).
@@ -628,7 +631,7 @@ def defocus_fn(
 ):
     """A pure, jittable `f(focus_distance, aperture_radius) -> (H, W, 3)` for fitting.
 
-    `method` is "pyramid" or "sliced", as in `defocus`.
+    `method` is "pyramid", "sliced" or "lens", as in `defocus`.
 
     The image, depth, field of view and shape are validated once here (host) and closed over;
     `f` runs only the jitted defocus core with a fixed window, so it can be `jax.jit`-ed,

@@ -784,7 +784,8 @@ class DefocusModel:
         window: the largest |CoC| (px) supported; larger |c| is clamped to it by the defocus.
         shape, blades, rotation, ratio: aperture shape, as `dofjax.defocus`.
         method: "sliced" (default: depth slices and FFT products in one `lax.scan`, which
-            compiles in seconds) or "pyramid", as `dofjax.defocus(..., method=...)`.
+            compiles in seconds), "pyramid" or "lens" (occlusion per lens ray: closest to a real
+            lens behind blurred edges, ~100x slower), as `dofjax.defocus(..., method=...)`.
     """
 
     window: float

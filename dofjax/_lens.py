@@ -130,7 +130,6 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     height, width = depth.shape
     dtype = rgb.dtype
     lv = levels(window, spacing)
-    n = len(lv)
     stack = _sheets(_sources(rgb, depth, camera, reflection, layers, window, spacing), lv,
                     spacing)
     mirror = reflection is not None
@@ -149,35 +148,39 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     offsets = jnp.asarray(np.stack([iy, ix], -1).astype(np.int32) + pad)
     fracs = jnp.asarray(np.stack([dy - iy, dx - ix], -1), dtype)
 
-    @jax.checkpoint
+    zeros = jnp.zeros((height, width), dtype)
+
+    def sheet(carry, x):
+        # one slice, front to back along one ray: `hidden` is the coverage of the slices nearer
+        # than the previous one, `prev_cover`/`prev_front` the previous slice's (all / in front)
+        hidden, prev_cover, prev_front, colour, cover, refl = carry
+        img, off, frac = x
+
+        def tap(oy, ox):
+            start = (off[0] + oy, off[1] + ox, jnp.int32(0))
+            return jax.lax.dynamic_slice(img, start, (height, width, chans))
+
+        fy, fx = frac[0], frac[1]
+        g = ((1 - fy) * ((1 - fx) * tap(0, 0) + fx * tap(0, 1))
+             + fy * ((1 - fx) * tap(1, 0) + fx * tap(1, 1)))
+        t = jnp.clip(1.0 - hidden - prev_front, 0.0, 1.0)
+        colour = colour + t[..., None] * g[..., :3]
+        cover = cover + t * g[..., 3]
+        if mirror:
+            refl = refl + g[..., 5:8]
+        return (hidden + prev_cover, g[..., 3], g[..., 4], colour, cover, refl), None
+
+    @jax.checkpoint  # reverse mode keeps one carry per lens point, recomputes the sheets
     def ray(carry, x):
         off, frac = x
-        occluded = jnp.zeros((height, width), dtype)  # coverage of slices nearer than p - 1
-        colour = jnp.zeros((height, width, 3), dtype)
-        cover = jnp.zeros((height, width), dtype)
-        refl = jnp.zeros((height, width, 3), dtype)
-        prev = None
-        for p in range(n):
-            def tap(oy, ox, p=p):
-                start = (off[p, 0] + oy, off[p, 1] + ox, jnp.int32(0))
-                return jax.lax.dynamic_slice(stack[p], start, (height, width, chans))
-            fy, fx = frac[p, 0], frac[p, 1]
-            g = ((1 - fy) * ((1 - fx) * tap(0, 0) + fx * tap(0, 1))
-                 + fy * ((1 - fx) * tap(1, 0) + fx * tap(1, 1)))
-            hide = occluded if prev is None else occluded + prev[..., 4]
-            t = jnp.clip(1.0 - hide, 0.0, 1.0)
-            colour = colour + t[..., None] * g[..., :3]
-            cover = cover + t * g[..., 3]
-            if mirror:
-                refl = refl + g[..., 5:8]
-            if prev is not None:
-                occluded = occluded + prev[..., 3]
-            prev = g
+        refl0 = jnp.zeros((height, width, 3 if mirror else 0), dtype)
+        init = (zeros, zeros, zeros, jnp.zeros((height, width, 3), dtype), zeros, refl0)
+        (_, _, _, colour, cover, refl), _ = jax.lax.scan(sheet, init, (stack, off, frac))
         c_acc, v_acc, r_acc = carry
         return (c_acc + colour, v_acc + cover, r_acc + refl), None
 
-    init = (jnp.zeros((height, width, 3), dtype), jnp.zeros((height, width), dtype),
-            jnp.zeros((height, width, 3), dtype))
+    init = (jnp.zeros((height, width, 3), dtype), zeros,
+            jnp.zeros((height, width, 3 if mirror else 0), dtype))
     (colour, cover, refl), _ = jax.lax.scan(ray, init, (offsets, fracs))
     norm = jnp.minimum(cover, float(samples))
     out = safe_div(colour, norm[..., None])
