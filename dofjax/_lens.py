@@ -141,6 +141,7 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     pad = int(math.ceil(window * float(np.abs(pts).max()))) + 1
     stack = jnp.pad(stack, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
     chans = stack.shape[-1]
+    used = jnp.any(stack != 0, axis=(1, 2, 3))  # (S,): slices with a source
     # per lens point and slice: the read's integer offset and bilinear fractions (host constants)
     dx = lv[None, :] * pts[:, 0:1]  # image right: + column
     dy = -lv[None, :] * pts[:, 1:2]  # image up: - row
@@ -154,28 +155,33 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
         # one slice, front to back along one ray: `hidden` is the coverage of the slices nearer
         # than the previous one, `prev_cover`/`prev_front` the previous slice's (all / in front)
         hidden, prev_cover, prev_front, colour, cover, refl = carry
-        img, off, frac = x
+        img, off, frac, used = x
 
-        def tap(oy, ox):
-            start = (off[0] + oy, off[1] + ox, jnp.int32(0))
-            return jax.lax.dynamic_slice(img, start, (height, width, chans))
+        def read(_):
+            def tap(oy, ox):
+                start = (off[0] + oy, off[1] + ox, jnp.int32(0))
+                return jax.lax.dynamic_slice(img, start, (height, width, chans))
 
-        fy, fx = frac[0], frac[1]
-        g = ((1 - fy) * ((1 - fx) * tap(0, 0) + fx * tap(0, 1))
-             + fy * ((1 - fx) * tap(1, 0) + fx * tap(1, 1)))
-        t = jnp.clip(1.0 - hidden - prev_front, 0.0, 1.0)
-        colour = colour + t[..., None] * g[..., :3]
-        cover = cover + t * g[..., 3]
-        if mirror:
-            refl = refl + g[..., 5:8]
-        return (hidden + prev_cover, g[..., 3], g[..., 4], colour, cover, refl), None
+            fy, fx = frac[0], frac[1]
+            g = ((1 - fy) * ((1 - fx) * tap(0, 0) + fx * tap(0, 1))
+                 + fy * ((1 - fx) * tap(1, 0) + fx * tap(1, 1)))
+            t = jnp.clip(1.0 - hidden - prev_front, 0.0, 1.0)
+            return (hidden + prev_cover, g[..., 3], g[..., 4],
+                    colour + t[..., None] * g[..., :3], cover + t * g[..., 3],
+                    refl + g[..., 5:8] if mirror else refl)
+
+        def skip(_):  # an empty slice (no source within a spacing of its level) reads zeros
+            return hidden + prev_cover, zeros, zeros, colour, cover, refl
+
+        return jax.lax.cond(used, read, skip, None), None
 
     @jax.checkpoint  # reverse mode keeps one carry per lens point, recomputes the sheets
     def ray(carry, x):
         off, frac = x
         refl0 = jnp.zeros((height, width, 3 if mirror else 0), dtype)
         init = (zeros, zeros, zeros, jnp.zeros((height, width, 3), dtype), zeros, refl0)
-        (_, _, _, colour, cover, refl), _ = jax.lax.scan(sheet, init, (stack, off, frac))
+        (_, _, _, colour, cover, refl), _ = jax.lax.scan(sheet, init,
+                                                          (stack, off, frac, used))
         c_acc, v_acc, r_acc = carry
         return (c_acc + colour, v_acc + cover, r_acc + refl), None
 
