@@ -10,32 +10,40 @@ every sample is its own pinhole-like ray through the layered scene:
 1. Sources (the visible image, peeled layers k >= 1 or, for single-layer RGB-D, the
    hidden-background estimate of `_hidden.hidden_layer`) have signed CoCs c (DESIGN.md section 1)
    and are split between the two slices of a uniform grid of levels (`spacing` px apart, from
-   +window to -window, front to back) that bracket them, with weights linear in c. A slice is a
-   thin sheet at one CoC: premultiplied colour, coverage, and the part of the coverage that comes
-   from sources in front of its level.
+   +window to -window, front to back) that bracket them, with weights linear in q = c |c| (so
+   the blend of the two sheets' blurs has the source's own second moment). A slice is a thin
+   sheet at one CoC: premultiplied colour and coverage of the sources in front of its level (the
+   bracket towards the previous level) and of those behind it, kept apart.
 2. For a lens point l (unit aperture, image right/up axes; `_sampling.aperture_points`, the points
    `render_reference` uses), the ray through pixel x meets the sheet of level c at x + c l (a
-   source at z lands at x_pinhole - c l; DESIGN.md section 4): each sheet is read there, by
-   bilinear interpolation, front to back. The sheet of slice p is hidden by the coverage of the
-   sources in front of level p - 1 (all slices nearer than p - 1 and the front part of p - 1),
-   summed and clipped to [0, 1]: a source never hides its own share of the next slice.
+   source at z lands at x_pinhole - c l; DESIGN.md section 4): each sheet is read there by
+   Catmull-Rom interpolation (bilinear reads blur: they add up to ~0.15 px^2 per axis, more than
+   the whole blur of a |c| = 0.5 px source; on the data_gen lens-reference cases the model-minus-
+   reference rms fell from 0.026 to 0.022 median), front to back. A source in front of level p
+   is hidden by the coverage, met along the ray, of everything in front of level p - 1; one
+   behind level p by everything in front of level p (the slices before p and the front part of
+   p). So a source never hides its own share of a neighbouring slice, and a surface one bracket
+   behind another is hidden by it. The coverages are summed and clipped to [0, 1], and a ray is
+   full once its coverage reaches 1 (surfaces that share a bracket, which the rules cannot
+   order, are then seen front first rather than added).
 3. The pixel averages its rays over `samples` deterministic lens points (a Fibonacci lattice in the
    unit square mapped onto the aperture: disc, polygon or anamorphic ellipse). Where the rays'
    total coverage is below 1 (what no layer supplies, or the frame border) the visible colours are
-   renormalised; elsewhere the scatter's energy is untouched (bilinear reads conserve the sum of
-   each sheet, so a constant-depth image keeps its total away from the borders).
+   renormalised; elsewhere the scatter's energy is untouched (the reads' weights sum to 1, so a
+   constant-depth image keeps its total away from the borders).
 4. The mirror layer's reflected radiance is read from its own sheets at its virtual depth and
    added without occlusion, as the other methods do.
 
-Hidden surfaces enter only where they lie 1.5-2.5 slices behind the visible one (continuous in
-focus and aperture), as in `_sliced.surface_sources`: nearer, the two share slices and would not
-hide each other.
+Hidden surfaces enter only where they lie at least one level behind the visible one (ramped
+over a second, continuous in focus and aperture): nearer, the two would share a bracket and the
+visible one would not hide the hidden one.
 
-Cost: samples x slices bilinear reads of the sheet stack (5 channels, 8 with a mirror), so it is
-the slow, accurate method: the quads accuracy benchmark (128 x 96, max |c| 12 px, 3 layers)
-runs in seconds, a 512 x 512 image with |c| up to 16 px in minutes. Derivatives w.r.t. focus and
-aperture flow through the slice weights only (sheet positions are constants), by plain autodiff;
-the lens loop is checkpointed so reverse mode stores one carry per lens point.
+Cost: samples x slices interpolated reads (4 + 4 separable taps) of the sheet stack (8 channels,
+11 with a mirror); slices without a source are skipped. The slow, accurate method: the quads
+accuracy benchmark (128 x 96, max |c| 12 px, 3 layers) runs in ~2 s, a 512 x 512 image with |c|
+up to 16 px in minutes (benchmarks/README.md). Derivatives w.r.t. focus and aperture flow through
+the slice weights only (sheet positions are constants), by plain autodiff; the lens loop is
+checkpointed so reverse mode stores one carry per lens point.
 """
 
 from __future__ import annotations
@@ -76,8 +84,19 @@ def levels(window: float, spacing: float = SLICE_SPACING) -> np.ndarray:
     return spacing * np.arange(n, -n - 1, -1, dtype=np.float64)
 
 
-def _sources(rgb, depth, camera, reflection, layers, window, spacing):
-    """[(colour (H, W, 3), signed CoC clamped to the window, coverage)] of every surface."""
+def _index(c, lv, weights):
+    """Fractional index of CoCs c among the front-to-back levels lv: linear in c ("c") or in
+    q = c |c| ("q": a source's split between two levels then has its own second moment)."""
+    lv = np.asarray(lv, np.float64)
+    if weights == "q":
+        x, grid = c * jnp.abs(c), lv * np.abs(lv)
+    else:
+        x, grid = c, lv
+    return jnp.interp(-x, jnp.asarray(-grid, c.dtype), jnp.arange(len(lv), dtype=c.dtype))
+
+
+def _sources(rgb, depth, camera, reflection, layers, window, lv, weights):
+    """[(colour (H, W, 3), fractional level index, coverage)] of every surface."""
     dtype = rgb.dtype
 
     def coc(z):
@@ -85,7 +104,8 @@ def _sources(rgb, depth, camera, reflection, layers, window, spacing):
 
     surface = rgb if reflection is None else rgb - reflection
     c0 = coc(depth)
-    out = [(surface, c0, jnp.ones(depth.shape, dtype))]
+    i0 = _index(c0, lv, weights)
+    out = [(surface, i0, jnp.ones(depth.shape, dtype))]
     if layers is not None:
         hidden = [(jnp.asarray(layers.rgb[k], dtype), coc(layers.depth[k]),
                    jnp.asarray(layers.alpha[k], dtype)) for k in range(1, layers.depth.shape[0])]
@@ -93,36 +113,45 @@ def _sources(rgb, depth, camera, reflection, layers, window, spacing):
         h_rgb, h_c, h_a = hidden_layer(jnp.moveaxis(surface, -1, 0), c0, window)
         hidden = [(jnp.moveaxis(h_rgb, 0, -1), h_c, h_a)]
     for colour, c, alpha in hidden:
-        behind = jnp.clip((c0 - c) / spacing - 1.5, 0.0, 1.0)
-        out.append((colour, c, alpha * behind))
+        ik = _index(c, lv, weights)
+        # only where it lies at least one level behind the visible surface (ramped over a
+        # second): then it shares no bracket of levels with it and is hidden by it
+        behind = jnp.clip(ik - i0 - 1.0, 0.0, 1.0)
+        out.append((colour, ik, alpha * behind))
     return out
 
 
-def _sheets(sources, lv, spacing):
-    """(S, H, W, 5) slice stack: premultiplied colour, coverage, coverage in front of the level."""
-    lv = jnp.asarray(lv, sources[0][0].dtype)[:, None, None]
+def _sheets(sources, n):
+    """(n, H, W, 8) slice stack: premultiplied colour and coverage of the sources in front of
+    the slice's level (the bracket towards the previous level) and of those behind it."""
+    p = jnp.arange(n, dtype=sources[0][1].dtype)[:, None, None]
     stack = 0.0
-    for colour, c, alpha in sources:
-        w = jnp.maximum(0.0, 1.0 - jnp.abs(c[None] - lv) / spacing) * alpha[None]
-        front = jnp.where(c[None] > lv, w, 0.0)
-        stack = stack + jnp.concatenate([w[..., None] * colour[None], w[..., None],
-                                         front[..., None]], axis=-1)
+    for colour, idx, alpha in sources:
+        w = jnp.maximum(0.0, 1.0 - jnp.abs(idx[None] - p)) * alpha[None]
+        front = jnp.where(idx[None] < p, w, 0.0)
+        behind = w - front
+        stack = stack + jnp.concatenate([front[..., None] * colour[None],
+                                         behind[..., None] * colour[None],
+                                         front[..., None], behind[..., None]], axis=-1)
     return stack
 
 
-def _reflection_sheets(reflection, c, lv, spacing):
-    lv = jnp.asarray(lv, reflection.dtype)[:, None, None]
-    w = jnp.maximum(0.0, 1.0 - jnp.abs(c[None] - lv) / spacing)
+def _reflection_sheets(reflection, idx, n):
+    p = jnp.arange(n, dtype=idx.dtype)[:, None, None]
+    w = jnp.maximum(0.0, 1.0 - jnp.abs(idx[None] - p))
     return w[..., None] * reflection[None]
 
 
 @functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio", "samples",
-                                             "spacing"))
+                                             "spacing", "weights", "interp"))
 def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rotation=0.0,
                  ratio=1.0, reflection=None, reflection_depth=None, layers=None,
-                 samples: int = LENS_SAMPLES, spacing: float = SLICE_SPACING):
+                 samples: int = LENS_SAMPLES, spacing: float = SLICE_SPACING, weights="q",
+                 interp="cubic"):
     """Defocus by lens-sampled slices (module docstring); pure and jittable (`window`, shape,
-    `samples` and `spacing` static). Arguments as `dofjax.defocus`; no input validation here.
+    `samples`, `spacing`, `weights` and `interp` static). Arguments as `dofjax.defocus`; no input
+    validation here. `weights`: "q" (split linear in c |c|) or "c"; `interp`: "cubic"
+    (Catmull-Rom) or "linear" (bilinear) reads: the alternatives measured in the docstring.
 
     Single-layer input (`layers=None`) gets the hidden-background estimate as its extra source.
     |c| beyond the window is clamped to it.
@@ -130,15 +159,16 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     height, width = depth.shape
     dtype = rgb.dtype
     lv = levels(window, spacing)
-    stack = _sheets(_sources(rgb, depth, camera, reflection, layers, window, spacing), lv,
-                    spacing)
+    stack = _sheets(_sources(rgb, depth, camera, reflection, layers, window, lv, weights),
+                    len(lv))
     mirror = reflection is not None
     if mirror:
         c_r = jnp.clip(coc_radius(reflection_depth, camera).astype(dtype), -window, window)
-        stack = jnp.concatenate([stack, _reflection_sheets(reflection, c_r, lv, spacing)], -1)
-    # the widest read is window * max|l| (+1 for the bilinear neighbour) beyond the frame
+        refl_sheets = _reflection_sheets(reflection, _index(c_r, lv, weights), len(lv))
+        stack = jnp.concatenate([stack, refl_sheets], -1)
+    # the widest read is window * max|l| (+2 for the cubic taps) beyond the frame
     pts = lens_points(samples, blades, rotation, ratio)
-    pad = int(math.ceil(window * float(np.abs(pts).max()))) + 1
+    pad = int(math.ceil(window * float(np.abs(pts).max()))) + 2
     stack = jnp.pad(stack, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
     chans = stack.shape[-1]
     used = jnp.any(stack != 0, axis=(1, 2, 3))  # (S,): slices with a source
@@ -158,17 +188,40 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
         img, off, frac, used = x
 
         def read(_):
-            def tap(oy, ox):
-                start = (off[0] + oy, off[1] + ox, jnp.int32(0))
-                return jax.lax.dynamic_slice(img, start, (height, width, chans))
-
             fy, fx = frac[0], frac[1]
-            g = ((1 - fy) * ((1 - fx) * tap(0, 0) + fx * tap(0, 1))
-                 + fy * ((1 - fx) * tap(1, 0) + fx * tap(1, 1)))
-            t = jnp.clip(1.0 - hidden - prev_front, 0.0, 1.0)
-            return (hidden + prev_cover, g[..., 3], g[..., 4],
-                    colour + t[..., None] * g[..., :3], cover + t * g[..., 3],
-                    refl + g[..., 5:8] if mirror else refl)
+            if interp == "cubic":  # Catmull-Rom: taps -1..2, separable, no added second moment
+                def cr(t):
+                    t2, t3 = t * t, t * t * t
+                    return ((-t3 + 2 * t2 - t) / 2, (3 * t3 - 5 * t2 + 2) / 2,
+                            (-3 * t3 + 4 * t2 + t) / 2, (t3 - t2) / 2)
+                wx, wy = cr(fx), cr(fy)
+                rows = sum(wx[j] * jax.lax.dynamic_slice(
+                    img, (off[0] - 1, off[1] + j - 1, jnp.int32(0)), (height + 3, width, chans))
+                    for j in range(4))
+                g = sum(wy[i] * rows[i: i + height] for i in range(4))
+            else:
+                def tap(oy, ox):
+                    start = (off[0] + oy, off[1] + ox, jnp.int32(0))
+                    return jax.lax.dynamic_slice(img, start, (height, width, chans))
+
+                g = ((1 - fy) * ((1 - fx) * tap(0, 0) + fx * tap(0, 1))
+                     + fy * ((1 - fx) * tap(1, 0) + fx * tap(1, 1)))
+            # sources in front of this level (in the bracket from the previous level) are
+            # hidden by everything in front of the previous level; those behind it by
+            # everything in front of this level, the previous slice and the front part here
+            a_front, a_behind = g[..., 6], g[..., 7]
+            t_front = jnp.clip(1.0 - hidden - prev_front, 0.0, 1.0)
+            t_behind = jnp.clip(1.0 - hidden - prev_cover - a_front, 0.0, 1.0)
+            # and a ray is full once its coverage reaches 1: two surfaces that share a bracket
+            # of levels (which the rules above cannot order) are seen front first
+            seen = t_front * a_front + t_behind * a_behind
+            room = jnp.clip(1.0 - cover, 0.0, 1.0)
+            scale = jnp.where(seen > room, safe_div(room, seen), 1.0)
+            return (hidden + prev_cover, a_front + a_behind, a_front,
+                    colour + (scale * t_front)[..., None] * g[..., 0:3]
+                    + (scale * t_behind)[..., None] * g[..., 3:6],
+                    cover + scale * seen,
+                    refl + g[..., 8:11] if mirror else refl)
 
         def skip(_):  # an empty slice (no source within a spacing of its level) reads zeros
             return hidden + prev_cover, zeros, zeros, colour, cover, refl

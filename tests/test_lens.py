@@ -28,20 +28,26 @@ def depth_for_coc(c, cam):
     return 1.0 / (1.0 / float(cam.focus_distance) + np.asarray(c, dtype=np.float64) / ak)
 
 
+def catmull_rom(t):
+    return np.array([(-t**3 + 2 * t**2 - t) / 2, (3 * t**3 - 5 * t**2 + 2) / 2,
+                     (-3 * t**3 + 4 * t**2 + t) / 2, (t**3 - t**2) / 2])
+
+
 def lens_kernel(c, blades=None, rotation=0.0, ratio=1.0, samples=LENS_SAMPLES):
     """The gather kernel of one sheet at CoC c, built independently: each lens point l reads the
-    sheet at x + c l (x right, y up) by bilinear interpolation. Returned for scipy's convolve
-    (out[x] = sum k[j] img[x - j]), so the read at offset o lands at j = -o."""
+    sheet at x + c l (x right, y up) by Catmull-Rom interpolation (taps -1..2 around the floor).
+    Returned for scipy's convolve (out[x] = sum k[j] img[x - j]): a read at offset o lands at
+    j = -o."""
     pts = lens_points(samples, blades, rotation, ratio)
-    half = int(np.ceil(abs(c) * np.abs(pts).max())) + 1
+    half = int(np.ceil(abs(c) * np.abs(pts).max())) + 2
     k = np.zeros((2 * half + 1, 2 * half + 1))
     for lx, ly in pts:
         oy, ox = -c * ly, c * lx  # read offset in (row, column)
         iy, ix = int(np.floor(oy)), int(np.floor(ox))
-        fy, fx = oy - iy, ox - ix
-        for dy, wy in ((0, 1 - fy), (1, fy)):
-            for dx, wx in ((0, 1 - fx), (1, fx)):
-                k[half - (iy + dy), half - (ix + dx)] += wy * wx / samples
+        wy, wx = catmull_rom(oy - iy), catmull_rom(ox - ix)
+        for dy in range(4):
+            for dx in range(4):
+                k[half - (iy + dy - 1), half - (ix + dx - 1)] += wy[dy] * wx[dx] / samples
     return k
 
 
@@ -53,13 +59,15 @@ def convolve(rgb, k):
                                      (3.0, dict(blades=5, rotation=0.3)),
                                      (-2.5, dict(ratio=1.5))])
 def test_constant_depth_equals_one_convolution(c, shape):
-    # between two levels (c = 1.25) the source is split linearly between their two sheets
+    # between two levels (c = 1.25) the source is split between their two sheets linearly in
+    # q = c |c| (so the blend has the source's own second moment)
     cam = camera()
     rgb = np.random.default_rng(1).random((N, N, 3))
     depth = np.full((N, N), depth_for_coc(c, cam))
     out = np.asarray(lens_defocus(rgb, depth, cam, window=4, **shape))
     lo = np.floor(c / SLICE_SPACING) * SLICE_SPACING
-    t = (c - lo) / SLICE_SPACING
+    hi = lo + SLICE_SPACING
+    t = (c * abs(c) - lo * abs(lo)) / (hi * abs(hi) - lo * abs(lo))
     k = lens_kernel(lo, **shape)
     ref = (1 - t) * convolve(rgb, k)
     if t > 0:
@@ -86,7 +94,9 @@ def test_near_and_far_kernels_are_point_reflections():
 def test_energy_conserved_away_from_borders(c):
     cam = camera()
     rgb = np.zeros((N, N, 3))
-    rgb[8:-8, 8:-8] = np.random.default_rng(2).random((N - 16, N - 16, 3))
+    # pixels within reach (|c| + 2 cubic taps) of the frame are renormalised: keep the image
+    # further in than twice that
+    rgb[11:-11, 11:-11] = np.random.default_rng(2).random((N - 22, N - 22, 3))
     depth = np.full((N, N), depth_for_coc(c, cam))
     out = np.asarray(lens_defocus(rgb, depth, cam, window=4))
     np.testing.assert_allclose(out.sum(axis=(0, 1)), rgb.sum(axis=(0, 1)), rtol=1e-12)
@@ -204,4 +214,4 @@ def test_closer_to_the_lens_reference_than_the_scatter_methods():
     crop = (slice(g, g + h), slice(g, g + w))
     err = {m: np.sqrt(np.mean((np.asarray(dofjax.defocus(sharp, gcam, method=m))[crop] - ref)
                               ** 2)) for m in ("lens", "sliced", "pyramid")}
-    assert err["lens"] < 0.8 * min(err["sliced"], err["pyramid"]), err
+    assert err["lens"] < 0.75 * min(err["sliced"], err["pyramid"]), err  # measured 0.70
