@@ -88,12 +88,8 @@ def scaled_camera(scene, cam, max_coc):
 
 def guarded(cam, guard):
     """The camera extended by `guard` px on every side, same pose and pixel scale (so pixel (i, j)
-    of the frame is pixel (i + guard, j + guard) here)."""
-    width = cam.width + 2 * guard
-    half = math.atan(width / cam.width * math.tan(math.radians(float(cam.fov)) / 2.0))
-    return dofjax.Camera(width=width, height=cam.height + 2 * guard, fov=math.degrees(2 * half),
-                         focus_distance=cam.focus_distance, aperture_radius=cam.aperture_radius,
-                         eye=cam.eye, target=cam.target, up=cam.up)
+    of the frame is pixel (i + guard, j + guard) here): `Camera.padded`."""
+    return cam.padded(guard)
 
 
 def reference_half(scene, cam, path, spp, seed, cache):

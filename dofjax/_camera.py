@@ -19,6 +19,7 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._numerics import inverse_depth, normalize
@@ -149,6 +150,28 @@ class Camera(eqx.Module):
             tuple(_as_float(changes[n]) if n in ("fov", "focus_distance", "aperture_radius")
                   else _as_vec3(changes[n]) for n in names),
         )
+
+    def padded(self, margin: int) -> Camera:
+        """The same camera seeing `margin` more pixels on every side of the frame.
+
+        Same pose, pixel scale, focus and aperture: pixel (i, j) of this camera is pixel
+        (i + margin, j + margin) of the padded one (the field of view widens to keep the pixel
+        scale). Render the sharp input with it, defocus it with it and crop
+        `[margin:-margin, margin:-margin]`: the blur then gathers what lies just beyond the frame,
+        as a lens does. A margin of the largest |CoC| + 2 px is enough (on the quads scene it
+        moves the lens method's RMSE against the lens-sampling reference from 0.0090 to 0.0054;
+        benchmarks/README.md).
+        """
+        if isinstance(margin, bool) or not isinstance(margin, int | np.integer) or margin < 0:
+            raise ValueError(f"Camera.padded: margin must be an integer >= 0 px, got {margin!r}")
+        margin = int(margin)
+        if margin == 0:
+            return self
+        width = self.width + 2 * margin
+        half = jnp.arctan(width / self.width * jnp.tan(jnp.deg2rad(self.fov) / 2.0))
+        return Camera(width=width, height=self.height + 2 * margin, fov=jnp.rad2deg(2.0 * half),
+                      focus_distance=self.focus_distance, aperture_radius=self.aperture_radius,
+                      eye=self.eye, target=self.target, up=self.up)
 
     @property
     def pixel_scale(self) -> Float[Array, ""]:

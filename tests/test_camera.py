@@ -137,3 +137,22 @@ def test_camera_values_do_not_recompile():
 
 def test_public_surface():
     assert dofjax.Camera is Camera
+
+
+def test_padded_camera_keeps_pixels_and_scale():
+    cam = Camera(width=40, height=30, fov=55.0, focus_distance=3.0, aperture_radius=0.1,
+                 eye=(0.3, -0.2, 0.1), target=(1.0, 0.5, 4.0), up=(0.1, 1.0, 0.0))
+    big = cam.padded(7)
+    assert (big.width, big.height) == (54, 44)
+    assert float(big.pixel_scale) == pytest.approx(float(cam.pixel_scale), rel=1e-12)
+    np.testing.assert_allclose(np.asarray(big.pixel_directions())[7:-7, 7:-7],
+                               np.asarray(cam.pixel_directions()), atol=1e-12)
+    assert float(big.focus_distance) == 3.0 and float(big.aperture_radius) == 0.1
+    assert cam.padded(0) is cam
+
+
+@pytest.mark.parametrize("margin", [-1, 2.5, True, "3"])
+def test_padded_camera_rejects_bad_margins(margin):
+    cam = Camera(width=8, height=8, fov=40.0, focus_distance=1.0, aperture_radius=0.0)
+    with pytest.raises(ValueError, match="margin must be an integer >= 0"):
+        cam.padded(margin)

@@ -204,11 +204,9 @@ def test_closer_to_the_lens_reference_than_the_scatter_methods():
     scene = dofjax.load_scene(path)
     base = dofjax.load_camera(path)
     w, h, g = 48, 36, 8
-    pose = dict(focus_distance=base.focus_distance, aperture_radius=0.2, eye=base.eye,
-                target=base.target, up=base.up)
-    cam = dofjax.Camera(width=w, height=h, fov=base.fov, **pose)
-    half = np.arctan((w + 2 * g) / w * np.tan(np.radians(float(base.fov)) / 2))
-    gcam = dofjax.Camera(width=w + 2 * g, height=h + 2 * g, fov=float(np.degrees(2 * half)), **pose)
+    cam = dofjax.Camera(width=w, height=h, fov=base.fov, focus_distance=base.focus_distance,
+                        aperture_radius=0.2, eye=base.eye, target=base.target, up=base.up)
+    gcam = cam.padded(g)
     ref = np.asarray(dofjax.render_reference(scene, cam, spp=4096, key=jax.random.key(0)))
     sharp = dofjax.render(scene, gcam, spp=64, layers=3)
     crop = (slice(g, g + h), slice(g, g + w))
