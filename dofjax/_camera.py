@@ -159,7 +159,7 @@ class Camera(eqx.Module):
         scale). Render the sharp input with it, defocus it with it and crop
         `[margin:-margin, margin:-margin]`: the blur then gathers what lies just beyond the frame,
         as a lens does. A margin of the largest |CoC| + 2 px is enough (on the quads scene it
-        moves the lens method's RMSE against the lens-sampling reference from 0.0090 to 0.0054;
+        moves the lens method's RMSE against the lens-sampling reference from 0.0088 to 0.0054;
         benchmarks/README.md).
         """
         if isinstance(margin, bool) or not isinstance(margin, int | np.integer) or margin < 0:
