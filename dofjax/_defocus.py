@@ -553,7 +553,7 @@ def defocus(
             composited by FFT products in one `lax.scan`; compiles in seconds, the fitter's
             default) or "lens" (`_lens.py`: the same slices read along `LENS_SAMPLES` rays per
             pixel through points of the aperture, occlusion decided per ray: closest to the
-            lens-sampling reference behind blurred edges, and ~100x slower than "sliced").
+            lens-sampling reference behind blurred edges, and ~3000x slower than "sliced").
             All implement the scatter model of DESIGN.md section 3.
 
     Returns:

@@ -785,7 +785,7 @@ class DefocusModel:
         shape, blades, rotation, ratio: aperture shape, as `dofjax.defocus`.
         method: "sliced" (default: depth slices and FFT products in one `lax.scan`, which
             compiles in seconds), "pyramid" or "lens" (occlusion per lens ray: closest to a real
-            lens behind blurred edges, ~100x slower), as `dofjax.defocus(..., method=...)`.
+            lens behind blurred edges, ~3000x slower), as `dofjax.defocus(..., method=...)`.
     """
 
     window: float
