@@ -54,7 +54,7 @@ def grad_energy(img):
 
 @pytest.mark.xfail(
     strict=False,
-    reason="known defect: both defocus methods blend two fixed-radius level kernels, so the "
+    reason="known defect: all three defocus methods blend two fixed-radius levels, so the "
     "gradient energy dips between levels and rises again at the next level (e.g. |c| 3.4 px "
     "blended vs 4 px exact, found by this test). Needs per-source radii, not level blends.",
 )
