@@ -11,21 +11,8 @@ import pytest
 import scipy.signal
 
 import dofjax
-from dofjax import Camera
 from dofjax._lens import LENS_SAMPLES, SLICE_SPACING, lens_defocus, lens_points
-
-N = 32
-
-
-def camera(**kw):
-    base = dict(width=N, height=N, fov=40.0, focus_distance=2.0, aperture_radius=1.0)
-    base.update(kw)
-    return Camera(**base)
-
-
-def depth_for_coc(c, cam):
-    ak = float(cam.aperture_radius) * float(cam.pixel_scale)
-    return 1.0 / (1.0 / float(cam.focus_distance) + np.asarray(c, dtype=np.float64) / ak)
+from tests.test_sliced import N, camera, depth_for_coc  # the same 32 px camera and CoC map
 
 
 def catmull_rom(t):
