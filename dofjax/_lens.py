@@ -42,9 +42,9 @@ Cost: samples x slices interpolated reads (4 + 4 separable taps) of the sheet st
 11 with a mirror); slices without a source are skipped. The slow, accurate method: the quads
 accuracy benchmark (128 x 96, max |c| 12 px, 3 layers) runs in ~2 s; at 256 x 256 with |c| up to
 8 px on every slice a forward pass takes 30 s, ~3000x the sliced method, and `jacfwd`/`grad`
-4.8x/5.4x that (benchmarks/results/defocus_lens_speed.md, 2 loaded cores). Derivatives w.r.t. focus and aperture flow through
-the slice weights only (sheet positions are constants), by plain autodiff; the lens loop is
-checkpointed so reverse mode stores one carry per lens point.
+4.8x/5.4x that (benchmarks/results/defocus_lens_speed.md, 2 loaded cores). Derivatives w.r.t.
+focus and aperture flow through the slice weights only (sheet positions are constants), by plain
+autodiff; the lens loop is checkpointed so reverse mode stores one carry per lens point.
 """
 
 from __future__ import annotations
@@ -122,25 +122,25 @@ def _sources(rgb, depth, camera, reflection, layers, window, lv, weights):
     return out
 
 
+def _split(idx, n):
+    """(n, H, W) weights of sources at fractional level index idx on the n slices (a hat)."""
+    p = jnp.arange(n, dtype=idx.dtype)[:, None, None]
+    return jnp.maximum(0.0, 1.0 - jnp.abs(idx[None] - p))
+
+
 def _sheets(sources, n):
     """(n, H, W, 8) slice stack: premultiplied colour and coverage of the sources in front of
     the slice's level (the bracket towards the previous level) and of those behind it."""
     p = jnp.arange(n, dtype=sources[0][1].dtype)[:, None, None]
     stack = 0.0
     for colour, idx, alpha in sources:
-        w = jnp.maximum(0.0, 1.0 - jnp.abs(idx[None] - p)) * alpha[None]
+        w = _split(idx, n) * alpha[None]
         front = jnp.where(idx[None] < p, w, 0.0)
         behind = w - front
         stack = stack + jnp.concatenate([front[..., None] * colour[None],
                                          behind[..., None] * colour[None],
                                          front[..., None], behind[..., None]], axis=-1)
     return stack
-
-
-def _reflection_sheets(reflection, idx, n):
-    p = jnp.arange(n, dtype=idx.dtype)[:, None, None]
-    w = jnp.maximum(0.0, 1.0 - jnp.abs(idx[None] - p))
-    return w[..., None] * reflection[None]
 
 
 @functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio", "samples",
@@ -165,7 +165,7 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     mirror = reflection is not None
     if mirror:
         c_r = jnp.clip(coc_radius(reflection_depth, camera).astype(dtype), -window, window)
-        refl_sheets = _reflection_sheets(reflection, _index(c_r, lv, weights), len(lv))
+        refl_sheets = _split(_index(c_r, lv, weights), len(lv))[..., None] * reflection[None]
         stack = jnp.concatenate([stack, refl_sheets], -1)
     # the widest read is window * max|l| (+2 for the cubic taps) beyond the frame
     pts = lens_points(samples, blades, rotation, ratio)
@@ -173,7 +173,7 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     stack = jnp.pad(stack, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
     chans = stack.shape[-1]
     used = jnp.any(stack != 0, axis=(1, 2, 3))  # (S,): slices with a source
-    # per lens point and slice: the read's integer offset and bilinear fractions (host constants)
+    # per lens point and slice: the read's integer offset and fractional part (host constants)
     dx = lv[None, :] * pts[:, 0:1]  # image right: + column
     dy = -lv[None, :] * pts[:, 1:2]  # image up: - row
     ix, iy = np.floor(dx), np.floor(dy)
@@ -186,7 +186,7 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
         # one slice, front to back along one ray: `hidden` is the coverage of the slices nearer
         # than the previous one, `prev_cover`/`prev_front` the previous slice's (all / in front)
         hidden, prev_cover, prev_front, colour, cover, refl = carry
-        img, off, frac, used = x
+        img, off, frac, occupied = x
 
         def read(_):
             fy, fx = frac[0], frac[1]
@@ -227,7 +227,7 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
         def skip(_):  # an empty slice (no source within a spacing of its level) reads zeros
             return hidden + prev_cover, zeros, zeros, colour, cover, refl
 
-        return jax.lax.cond(used, read, skip, None), None
+        return jax.lax.cond(occupied, read, skip, None), None
 
     @jax.checkpoint  # reverse mode keeps one carry per lens point, recomputes the sheets
     def ray(carry, x):
@@ -242,8 +242,8 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     init = (jnp.zeros((height, width, 3), dtype), zeros,
             jnp.zeros((height, width, 3 if mirror else 0), dtype))
     (colour, cover, refl), _ = jax.lax.scan(ray, init, (offsets, fracs))
-    norm = jnp.minimum(cover, float(samples))
-    out = safe_div(colour, norm[..., None])
+    # each ray's coverage is at most 1: below `samples` in total, the visible part is renormalised
+    out = safe_div(colour, cover[..., None])
     if mirror:
         out = out + refl / samples
     return out
