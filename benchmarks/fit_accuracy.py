@@ -120,6 +120,8 @@ def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None) -> dict:
     t = time.perf_counter()
     extra = {k: getattr(args, k) for k in ("screen_steps", "scan_points")
              if getattr(args, k) is not None}
+    if getattr(args, "coarse_size", None) is not None:  # 0: the multi-start at full resolution
+        extra["coarse_size"] = args.coarse_size or None
     method = getattr(args, "ref_method", None) if rgbd is not None else None
     if method is not None:
         extra["defocus_options"] = {"method": method}
@@ -746,6 +748,8 @@ def main(argv=None) -> None:
     p.add_argument("--coc-reach", type=float, default=8.0,
                    help="aperture upper bound: a CoC of this many windows")
     p.add_argument("--starts", type=int, default=8, help="fit_focus multi-starts")
+    p.add_argument("--coarse-size", type=int, default=None,
+                   help="fit_focus coarse_size (0: no downsampled multi-start level)")
     p.add_argument("--screen-steps", type=int, default=None,
                    help="fit_focus screen_steps (default: the library's)")
     p.add_argument("--scan-points", type=int, default=None,
