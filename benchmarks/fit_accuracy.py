@@ -111,9 +111,10 @@ def in_bounds(truth: dict, bounds: dict) -> bool:
     return all(bounds[k][0] <= truth[k] <= bounds[k][1] for k in PARAMS)
 
 
-def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None) -> dict:
+def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None, method=None) -> dict:
     """fit_focus of `target` from the case's sharp rgb and depth, or from `rgbd` (an `RGBD` from
-    `dofjax.render`: its peeled layers and mirror layer enter the model), on the `mask` pixels."""
+    `dofjax.render`: its peeled layers and mirror layer enter the model), on the `mask` pixels,
+    with the defocus `method` (None: fit_focus's default)."""
     import dofjax
 
     sharp = (rgbd, guess) if rgbd is not None else (case["rgb"], case["depth"], guess)
@@ -122,7 +123,6 @@ def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None) -> dict:
              if getattr(args, k) is not None}
     if getattr(args, "coarse_size", None) is not None:  # 0: the multi-start at full resolution
         extra["coarse_size"] = args.coarse_size or None
-    method = getattr(args, "ref_method", None) if rgbd is not None else None
     if method is not None:
         extra["defocus_options"] = {"method": method}
     res = dofjax.fit_focus(target, *sharp, bounds=bounds, mask=mask, window=args.window,
@@ -621,7 +621,8 @@ def reference(args) -> None:
         guess, bounds = guess_camera(case, rng, args.coc_reach * args.window)
         if args.start_at_truth:  # diagnostic: model mismatch alone, no basin to find
             guess = case["camera"]
-        row = fit_case(target, case, guess, bounds, args, rgbd=rgbd, mask=mask)
+        row = fit_case(target, case, guess, bounds, args, rgbd=rgbd, mask=mask,
+                       method=args.ref_method)
         # How far the model (the fit's: same sharp input) is from the reference at the truth and
         # at the fit, relative rms over the fitted pixels and over the whole frame: a fit with
         # the smaller residual is what the mismatch favours.

@@ -61,9 +61,11 @@ from ._hidden import hidden_layer
 from ._numerics import safe_div
 from ._sampling import aperture_points
 
-# lens points per pixel (quads benchmark: 128 -> 256 moves RMSE 0.0059 -> 0.0058)
+# Lens points per pixel and level spacing, chosen on the quads benchmark with the first (bilinear)
+# version: 128 -> 256 points moved RMSE 0.0059 -> 0.0058; spacing 1 px gave 0.0069, 0.25 px 0.0058
+# at 3x the time (benchmarks/README.md, "The lens method").
 LENS_SAMPLES = 256
-SLICE_SPACING = 0.5  # px between levels (1 px: RMSE 0.0069; 0.25 px: 0.0058, 3x slower)
+SLICE_SPACING = 0.5
 
 
 def lens_points(samples: int, blades, rotation, ratio) -> np.ndarray:
