@@ -203,12 +203,21 @@ def _encode_metadata(path: str, metadata: Mapping[str, Any] | None) -> list[tupl
     if not isinstance(metadata, Mapping):
         raise ValueError(f"{path}: metadata must be a dict, got {type(metadata).__name__}")
     out = []
+    folded: dict[str, str] = {}
     for name, value in metadata.items():
         if not isinstance(name, str) or not _NAME_RE.fullmatch(name):
             raise ValueError(
                 f"{path}: metadata name {name!r} is invalid: use letters, digits, '_', '.', '-' "
                 "(starting with a letter or '_', at most 200 characters, no 'dofjax:' prefix)"
             )
+        # OpenImageIO matches attribute names case-insensitively: the second would overwrite
+        # the first
+        if name.lower() in folded:
+            raise ValueError(
+                f"{path}: metadata names {folded[name.lower()]!r} and {name!r} differ only in "
+                "case; EXR header attributes (OpenImageIO) cannot hold both"
+            )
+        folded[name.lower()] = name
         value = _jsonable(value, repr(name))
         if isinstance(value, bool) or value is None or isinstance(value, list | dict):
             stored: Any = _JSON + json.dumps(value)

@@ -442,10 +442,20 @@ _names = st.from_regex(r"[A-Za-z_][A-Za-z0-9_.\-]{0,30}", fullmatch=True)
 @settings(
     max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
 )
-@given(meta=st.dictionaries(_names, _values, max_size=6))
+@given(meta=st.dictionaries(_names, _values, max_size=6).filter(
+    lambda m: len({k.lower() for k in m}) == len(m)))  # names that differ only in case: an error
 def test_exr_metadata_round_trip_property(tmp_path, meta):
     dofjax.write_exr(tmp_path / "h.exr", np.zeros((1, 1, 3), np.float32), metadata=meta)
     back = dofjax.read_exr_metadata(tmp_path / "h.exr")
     assert back == meta
     # Equal values of the same type (1 == 1.0 == True would hide a type change).
     assert json.dumps(back, sort_keys=True) == json.dumps(meta, sort_keys=True)
+
+
+def test_metadata_names_that_differ_only_in_case_are_an_error(tmp_path):
+    # found by the round-trip property: OpenImageIO's attribute names are case-insensitive, so
+    # {"C": 1, "c": 2} came back as {"c": 2}
+    with pytest.raises(ValueError, match="'C' and 'c' differ only in case"):
+        dofjax.write_exr(tmp_path / "h.exr", np.zeros((1, 1, 3), np.float32),
+                         metadata={"C": 1, "c": 2})
+    assert not (tmp_path / "h.exr").exists()
