@@ -111,7 +111,8 @@ def in_bounds(truth: dict, bounds: dict) -> bool:
     return all(bounds[k][0] <= truth[k] <= bounds[k][1] for k in PARAMS)
 
 
-def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None, method=None) -> dict:
+def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None, method=None,
+             samples=None) -> dict:
     """fit_focus of `target` from the case's sharp rgb and depth, or from `rgbd` (an `RGBD` from
     `dofjax.render`: its peeled layers and mirror layer enter the model), on the `mask` pixels,
     with the defocus `method` (None: fit_focus's default)."""
@@ -125,6 +126,8 @@ def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None, method=Non
         extra["coarse_size"] = args.coarse_size or None
     if method is not None:
         extra["defocus_options"] = {"method": method}
+        if samples is not None:
+            extra["defocus_options"]["samples"] = samples
     res = dofjax.fit_focus(target, *sharp, bounds=bounds, mask=mask, window=args.window,
                            starts=args.starts, loss=args.loss, **extra)
     seconds = time.perf_counter() - t
@@ -602,7 +605,8 @@ def reference(args) -> None:
 
     cfg = data_config(args.size, args.ref_sharp_spp, args.kinds)
     cases = identifiable_cases(cfg, args.seed, args.first, args.ref_cases)
-    model = dofjax.DefocusModel(window=args.window, method=args.ref_method)
+    samples = args.ref_samples if args.ref_method == "lens" else None
+    model = dofjax.DefocusModel(window=args.window, method=args.ref_method, samples=samples)
     forward = jax.jit(model)
     band = border_px(args)
     frame_mask = border_mask((args.size, args.size), band)
@@ -622,7 +626,7 @@ def reference(args) -> None:
         if args.start_at_truth:  # diagnostic: model mismatch alone, no basin to find
             guess = case["camera"]
         row = fit_case(target, case, guess, bounds, args, rgbd=rgbd, mask=mask,
-                       method=args.ref_method)
+                       method=args.ref_method, samples=samples)
         # How far the model (the fit's: same sharp input) is from the reference at the truth and
         # at the fit, relative rms over the fitted pixels and over the whole frame: a fit with
         # the smaller residual is what the mismatch favours.
@@ -779,7 +783,9 @@ def main(argv=None) -> None:
                    help="reference part: suffix of the output names, fit_accuracy_reference_TAG.*")
     p.add_argument("--ref-method", default="sliced", choices=("sliced", "pyramid", "lens"),
                    help="reference: the fit's defocus method (lens: slow, closest to the "
-                        "reference)")
+                        "reference; it polishes what a sliced search found)")
+    p.add_argument("--ref-samples", type=int, default=None,
+                   help="reference, --ref-method lens: lens points per pixel (default 256)")
     p.add_argument("--start-at-truth", action="store_true",
                    help="reference part, diagnostic: start the fit at the true camera (model "
                    "mismatch alone); writes fit_accuracy_reference_truth_start.*")

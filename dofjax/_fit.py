@@ -181,7 +181,8 @@ class FitResult(eqx.Module):
 
 @dataclasses.dataclass(frozen=True)
 class _Spec:
-    model: Callable  # full resolution
+    model: Callable  # full resolution: the polish and the covariance
+    search_model: Callable  # full resolution: the multi-start, scan and screen
     level_models: tuple[Callable, ...]  # per pyramid level (factors), coarsest first
     solver: str
     loss: str
@@ -572,8 +573,8 @@ def _losses(ys, skip, data, camera, param, spec, delta0):
         y, s = y_skip
 
         def value(_):
-            r = _residual_ul(param.to_ul(y, spec.free), data, camera, spec.model, spec.loss,
-                             delta0)
+            r = _residual_ul(param.to_ul(y, spec.free), data, camera, spec.search_model,
+                             spec.loss, delta0)
             return jnp.sum(r * r)
 
         return jax.lax.cond(s, lambda _: jnp.asarray(jnp.inf, data.target.dtype), value, None)
@@ -659,7 +660,7 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
     """
     rtol, atol = spec.rtol, spec.atol
     # coarsest first, full resolution last
-    stages = list(zip(levels, cameras, spec.level_models)) + [(data, camera, spec.model)]
+    stages = list(zip(levels, cameras, spec.level_models)) + [(data, camera, spec.search_model)]
     src, cam1, model1 = stages[0]
     # The multi-start only has to land in the right basin (the polish follows), and under vmap
     # every start waits for the slowest: loose tolerances and few steps.
@@ -786,6 +787,7 @@ class DefocusModel:
         method: "sliced" (default: depth slices and FFT products in one `lax.scan`, which
             compiles in seconds), "pyramid" or "lens" (occlusion per lens ray: closest to a real
             lens behind blurred edges, ~3000x slower), as `dofjax.defocus(..., method=...)`.
+        samples: lens points per pixel of method "lens" (None: 256), as `dofjax.defocus`.
     """
 
     window: float
@@ -794,13 +796,22 @@ class DefocusModel:
     rotation: float = 0.0
     ratio: float = 1.0
     method: str = "sliced"
+    samples: int | None = None
+
+    def __post_init__(self):
+        from ._defocus import METHODS, check_samples
+
+        if self.method not in METHODS:
+            raise ValueError(f"DefocusModel: method must be one of {METHODS}, got "
+                             f"{self.method!r}")
+        check_samples("DefocusModel", self.samples, self.method)
 
     def __call__(self, rgb, depth, camera, reflection=None, reflection_depth=None, layers=None):
         from ._defocus import defocus
 
         return defocus(rgb, depth, camera, window=self.window, shape=self.shape,
                        blades=self.blades, rotation=self.rotation, ratio=self.ratio,
-                       method=self.method, reflection=reflection,
+                       method=self.method, samples=self.samples, reflection=reflection,
                        reflection_depth=reflection_depth, layers=layers)
 
 
@@ -1181,12 +1192,17 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
                    a_bounds[1]),
             max_window)
         model = DefocusModel(window=float(max(win, 1.0)), **(defocus_options or {}))
-        level_models = tuple(dataclasses.replace(model, window=max(model.window / g, 1.0))
+        # the lens method only polishes: its minimum lies in the sliced model's basin, and a
+        # search with it would cost ~1000x as much (see defocus_options)
+        search = (dataclasses.replace(model, method="sliced", samples=None)
+                  if model.method == "lens" else model)
+        level_models = tuple(dataclasses.replace(search, window=max(search.window / g, 1.0))
                              for g in factors)
     else:
+        search = model
         level_models = (model,) * len(factors)
     spec = _Spec(
-        model=model, level_models=level_models, solver=solver, loss=loss,
+        model=model, search_model=search, level_models=level_models, solver=solver, loss=loss,
         auto_scale=(loss != "l2" and loss_scale is None), free=free, rtol=float(rtol),
         atol=float(atol), max_steps=int(max_steps), factors=factors, robust_rounds=robust_rounds,
         start_steps=int(start_steps), screen_steps=int(screen_steps),
@@ -1397,7 +1413,9 @@ def fit_focus(
             method to both. For photographs (or lens-sampled targets) of an RGBD with peeled
             layers, {"method": "lens"} is the model closest to a real lens (relative mismatch
             at the true camera 0.022 vs the sliced model's 0.035, median of the lens-reference
-            cases in benchmarks/README.md) at ~20x the fit time.
+            cases in benchmarks/README.md); it polishes only: the multi-start, scan and screen
+            run with "sliced" (same shape options), and the lens model takes the pair they
+            pick to its own minimum. {"method": "lens", "samples": 64} polishes ~3.5x faster.
         model: a forward model `model(rgb, depth, camera) -> (H, W, 3)`, pure and jittable, used
             instead of dofjax's defocus at every level (window/defocus_options are then ignored).
             Pass the same (hashable) object again to reuse the compiled program.
