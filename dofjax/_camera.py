@@ -33,6 +33,9 @@ def _as_float(x) -> Array:
     return jnp.asarray(x, dtype=jnp.result_type(float))
 
 
+_LEAVES = ("fov", "focus_distance", "aperture_radius", "eye", "target", "up")
+
+
 def _as_vec3(x) -> Array:
     return jnp.asarray(x, dtype=jnp.result_type(float)).reshape(3)
 
@@ -142,8 +145,19 @@ class Camera(eqx.Module):
         )
 
     def replace(self, **changes) -> Camera:
-        """A copy with some array leaves changed (no validation, no recompilation)."""
+        """A copy with some array leaves changed (no validation, no recompilation).
+
+        Only the array fields: fov, focus_distance, aperture_radius, eye, target, up. width and
+        height are static (they fix the compiled image shapes): build a new `Camera` for those.
+        """
         names = tuple(changes)
+        for n in names:
+            if n in ("width", "height"):
+                raise ValueError(f"Camera.replace: {n} is static (it sets the image shape): "
+                                 "build a new Camera(...) (or use Camera.padded) instead")
+            if n not in _LEAVES:
+                raise ValueError(f"Camera.replace: unknown field {n!r}; the array fields are "
+                                 f"{_LEAVES}")
         return eqx.tree_at(
             lambda c: tuple(getattr(c, n) for n in names),
             self,

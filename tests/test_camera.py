@@ -156,3 +156,12 @@ def test_padded_camera_rejects_bad_margins(margin):
     cam = Camera(width=8, height=8, fov=40.0, focus_distance=1.0, aperture_radius=0.0)
     with pytest.raises(ValueError, match="margin must be an integer >= 0"):
         cam.padded(margin)
+
+
+def test_replace_names_static_and_unknown_fields():
+    cam = Camera(width=8, height=6, fov=50.0, focus_distance=2.0, aperture_radius=0.1)
+    assert float(cam.replace(focus_distance=3.0).focus_distance) == 3.0
+    with pytest.raises(ValueError, match="width is static"):
+        cam.replace(width=16)
+    with pytest.raises(ValueError, match="unknown field 'focal_length'"):
+        cam.replace(focal_length=0.05)
