@@ -573,10 +573,12 @@ def sharp_rgbd(case: dict, args):
     if args.ref_layers <= 0:
         return None
     cam = case["camera"]
-    pinhole = cam.replace(focus_distance=1.0, aperture_radius=0.0)
+    s = getattr(args, "ref_supersample", 1)
+    pinhole = cam.replace(focus_distance=1.0, aperture_radius=0.0).scaled(s)
+    # (supersampled: the same pixel area, ref_sharp_spp samples per target pixel)
     rgbd = dofjax.render(dofjax.scene_from_dict(case["scene"]), pinhole,
-                         spp=args.ref_sharp_spp, layers=args.ref_layers)
-    if not np.array_equal(np.asarray(rgbd.depth), case["depth"]):
+                         spp=max(args.ref_sharp_spp // (s * s), 1), layers=args.ref_layers)
+    if s == 1 and not np.array_equal(np.asarray(rgbd.depth), case["depth"]):
         raise RuntimeError(f"sample {case['index']}: the layered render's depth differs from "
                            "the data_gen sample's")
     return rgbd
@@ -595,7 +597,10 @@ def ref_config(args) -> str:
             f"{border} (`--ref-border {args.ref_border}`); depth-edge mask: "
             f"{f'{args.ref_edge_mask:g} px' if args.ref_edge_mask > 0 else 'none'} "
             f"(`--ref-edge-mask {args.ref_edge_mask:g}`); start: "
-            f"{'truth' if args.start_at_truth else 'random'}; renderer source hash "
+            f"{'truth' if args.start_at_truth else 'random'}; fit model: {args.ref_method}"
+            f"{f' ({args.ref_samples} lens points)' if args.ref_samples else ''}"
+            f"{f', polished on a sharp input {args.ref_supersample}x finer per side' if args.ref_supersample > 1 else ''}"
+            f"; renderer source hash "
             f"{renderer_hash()} (in the cache key), model/fit source hash "
             f"{renderer_hash(MODEL_SOURCES)}.\n")
 
@@ -606,8 +611,17 @@ def reference(args) -> None:
     cfg = data_config(args.size, args.ref_sharp_spp, args.kinds)
     cases = identifiable_cases(cfg, args.seed, args.first, args.ref_cases)
     samples = args.ref_samples if args.ref_method == "lens" else None
-    model = dofjax.DefocusModel(window=args.window, method=args.ref_method, samples=samples)
-    forward = jax.jit(model)
+    sup = args.ref_supersample
+    if sup > 1 and args.ref_layers <= 0:
+        raise SystemExit("--ref-supersample needs --ref-layers >= 1 (a render of the sharp input)")
+    # the fit's polish model (a supersampled sharp input: CoCs in its finer pixels, then pooled)
+    model = jax.jit(dofjax.DefocusModel(window=args.window * sup, method=args.ref_method,
+                                        samples=samples))
+
+    def forward(rgb, depth, cam, **extras):
+        out = np.asarray(model(rgb, depth, cam.scaled(sup), **extras))
+        return out.reshape(args.size, sup, args.size, sup, 3).mean((1, 3))
+
     band = border_px(args)
     frame_mask = border_mask((args.size, args.size), band)
     rows = []
@@ -646,7 +660,7 @@ def reference(args) -> None:
             wr = weight[..., None] * np.ones_like(target)
             return float(np.sqrt(np.sum(wr * r * r) / np.sum(wr * target * target)))
 
-        coc = np.asarray(dofjax.coc_radius(inputs[1], case["camera"]))
+        coc = np.asarray(dofjax.coc_radius(case["depth"], case["camera"]))
         row["mismatch"] = mismatch_split(at_truth, np.asarray(case["depth"]), coc, w)
         row.update(reference_seconds=None if cached else render_s, max_coc_px=case["max_coc_px"],
                    ref_layers=args.ref_layers, ref_border_px=band,
@@ -784,6 +798,9 @@ def main(argv=None) -> None:
     p.add_argument("--ref-method", default="sliced", choices=("sliced", "pyramid", "lens"),
                    help="reference: the fit's defocus method (lens: slow, closest to the "
                         "reference; it polishes what a sliced search found)")
+    p.add_argument("--ref-supersample", type=int, default=1,
+                   help="reference: render the sharp input this many times finer per side "
+                   "(Camera.scaled) and fit with it (the prediction is box-averaged back)")
     p.add_argument("--ref-samples", type=int, default=None,
                    help="reference, --ref-method lens: lens points per pixel (default 256)")
     p.add_argument("--start-at-truth", action="store_true",

@@ -187,6 +187,24 @@ class Camera(eqx.Module):
                       focus_distance=self.focus_distance, aperture_radius=self.aperture_radius,
                       eye=self.eye, target=self.target, up=self.up)
 
+    def scaled(self, factor: int) -> Camera:
+        """The same view with `factor` times as many pixels per side (pixel scale x factor).
+
+        Same pose, field of view, focus and aperture: the block of factor x factor pixels at
+        (factor i, factor j) covers pixel (i, j) of this camera, so box-averaging an image of the
+        scaled camera gives this camera's. `fit_focus` takes a sharp input rendered with it
+        (`render(scene, camera.scaled(2), ...)`): the defocus then runs on the finer grid, where
+        a depth edge mixes less of the two surfaces in one pixel, and is box-averaged back.
+        """
+        if isinstance(factor, bool) or not isinstance(factor, int | np.integer) or factor < 1:
+            raise ValueError(f"Camera.scaled: factor must be an integer >= 1, got {factor!r}")
+        factor = int(factor)
+        if factor == 1:
+            return self
+        return Camera(width=self.width * factor, height=self.height * factor, fov=self.fov,
+                      focus_distance=self.focus_distance, aperture_radius=self.aperture_radius,
+                      eye=self.eye, target=self.target, up=self.up)
+
     @property
     def pixel_scale(self) -> Float[Array, ""]:
         """k = W / (2 tan(fov / 2)): pixels per unit of tan-angle."""

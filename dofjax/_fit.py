@@ -196,6 +196,7 @@ class _Spec:
     screen_steps: int  # max steps per screening solve of every start on each finer level (0: none)
     scan_points: int  # full-resolution scan of u, forward passes only (0: none)
     robust_rounds: int
+    supersample: int = 1  # the sharp input's pixels per target pixel, per side
 
 
 class _Extras(eqx.Module):
@@ -372,7 +373,9 @@ def _predict(ul: Array, data: _Data, camera: Camera, model: Callable) -> Array:
     # defocus's trace cache keys on that context: each resolution's model was traced twice
     # (tracing + lowering of a 256x256 fit: 10.3 s with the misses, 7.7 s without).
     with plain_autodiff(), jax.sharding.use_abstract_mesh(jax.sharding.get_abstract_mesh()):
-        return model(data.rgb, data.depth, cam, **extras)
+        pred = model(data.rgb, data.depth, cam, **extras)
+    s = pred.shape[0] // data.target.shape[0]
+    return _pool(pred, s, 0) if s > 1 else pred  # a supersampled sharp input (`Camera.scaled`)
 
 
 def _residual_ul(ul, data: _Data, camera: Camera, model: Callable, loss: str, delta) -> Array:
@@ -650,17 +653,23 @@ def _scan(y_scan, modes, values):
     return y_scan[jnp.concatenate([modes, idx])], jnp.concatenate([values[modes], key[idx]])
 
 
-def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, spec: _Spec):
+def _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_scene, delta0,
+              spec: _Spec):
     """Traceable body of one fit (vmapped over targets by fit_focus_batch).
 
-    `levels` and `cameras` are the downsampled copies of `data` and `camera` at the factors
-    `spec.factors` (coarsest first; empty when the multi-start runs at full resolution).
+    `data` is what the polish fits with the camera `fine` (a sharp input `spec.supersample`
+    times finer than the target, the prediction box-averaged back); `search` the same with the
+    sharp input at the target's resolution, for `camera` (the same as `data` when not
+    supersampled). `levels` and `cameras` are the downsampled copies of `search` and `camera`
+    at the factors `spec.factors` (coarsest first; empty when the multi-start runs at full
+    resolution).
     delta0 is the robust scale for the first stage: +inf (plain least squares; every robust
     weight is 1 there) for "l2" or an automatic scale, the user's `loss_scale` otherwise.
     """
     rtol, atol = spec.rtol, spec.atol
     # coarsest first, full resolution last
-    stages = list(zip(levels, cameras, spec.level_models)) + [(data, camera, spec.search_model)]
+    stages = list(zip(levels, cameras, spec.level_models)) + [
+        (search, camera, spec.search_model)]
     src, cam1, model1 = stages[0]
     # The multi-start only has to land in the right basin (the polish follows), and under vmap
     # every start waits for the slowest: loose tolerances and few steps.
@@ -748,7 +757,7 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
     pair, pair_loss, pair_steps, pair_ok = ys[idx], loss[idx], steps[idx], ok[idx]
     rounds = 1 + (spec.robust_rounds if spec.auto_scale else 0)
     pair, pair_loss, pair_steps, pair_ok, delta, jacs = _polish(
-        (pair, pair_loss, pair_steps, pair_ok), has_alt, data, camera, param, spec,
+        (pair, pair_loss, pair_steps, pair_ok), has_alt, data, fine, param, spec,
         spec.model, delta0, rtol, atol, rounds)
     # The polish can swap the order of the two minima.
     order = jnp.where(pair_loss[1] < pair_loss[0], jnp.array([1, 0]), jnp.array([0, 1]))
@@ -762,8 +771,8 @@ def _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, s
     # Which side of the scene each polished minimum is on (the polish may have crossed over).
     has_alt = has_alt & ((ul[0] > u_scene) != (ul_alt[0] > u_scene))
     cam_fit = camera.replace(focus_distance=1.0 / ul[0], aperture_radius=jnp.exp(ul[1]))
-    coc = jnp.abs(coc_radius(data.depth, cam_fit))
-    max_coc = jnp.max(jnp.where(data.weight > 0, coc, 0.0))
+    coc = jnp.abs(coc_radius(search.depth, cam_fit))  # target px
+    max_coc = jnp.max(jnp.where(search.weight > 0, coc, 0.0))
     return dict(
         ul=ul, ul_alt=ul_alt, sse=pair_loss[0] * n, sse_alt=pair_loss[1] * n, has_alt=has_alt,
         steps=pair_steps[0], converged=pair_ok[0], cov=cov, s2=s2, condition=condition,
@@ -842,9 +851,10 @@ def _check_finite(name: str, a: np.ndarray) -> None:
                          f"first at index {idx}")
 
 
-def _check_images(rgb, depth, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+def _check_images(rgb, depth, camera: Camera) -> tuple[np.ndarray, np.ndarray, int]:
     """Sharp (H, W, 3) colour and (H, W) depth as numpy arrays, checked against each other and the
-    camera's size, colours finite (depth is checked by `_depth_weight`)."""
+    camera's size (equal, or s times it per side: a supersampled input), colours finite (depth
+    is checked by `_depth_weight`). Returns (rgb, depth, s)."""
     depth_a = np.asarray(depth)
     if depth_a.ndim != 2:
         raise ValueError(f"depth: expected shape (H, W), got {depth_a.shape}")
@@ -852,18 +862,19 @@ def _check_images(rgb, depth, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     rgb_a = np.asarray(rgb)
     if rgb_a.shape != hw + (3,):
         raise ValueError(f"rgb: expected shape {hw + (3,)} to match depth {hw}, got {rgb_a.shape}")
-    if (camera.height, camera.width) != hw:
+    s = hw[0] // camera.height
+    if s < 1 or hw != (s * camera.height, s * camera.width):
         raise ValueError(
-            f"camera: width x height {camera.width}x{camera.height} does not match the image "
-            f"{hw[1]}x{hw[0]}")
+            f"camera: width x height {camera.width}x{camera.height} does not match the sharp "
+            f"image {hw[1]}x{hw[0]} (nor divides it: a sharp input rendered s times finer, with "
+            "camera.scaled(s), is s times the camera's width and height)")
     _check_finite("rgb", rgb_a)
-    return rgb_a, depth_a
+    return rgb_a, depth_a, s
 
 
-def _depth_weight(depth_a: np.ndarray, mask) -> np.ndarray:
+def _depth_weight(depth_a: np.ndarray, mask, hw: tuple[int, int]) -> np.ndarray:
     """Checks depth (> 0, or +inf for background) and turns `mask` (None, bool or weights >= 0,
-    shape of depth) into float64 pixel weights; clear errors naming the bad input."""
-    hw = depth_a.shape
+    shape hw: the target's) into float64 pixel weights; clear errors naming the bad input."""
     if np.isnan(depth_a).any() or (depth_a <= 0).any():
         idx = tuple(int(i) for i in np.argwhere(np.isnan(depth_a) | (depth_a <= 0))[0])
         raise ValueError(f"depth: must be > 0 (or +inf for background), got {depth_a[idx]!r} "
@@ -903,20 +914,21 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
             raise ValueError(f"fixed: names must be in {PARAMS}, got {name!r}")
     if len(set(fixed)) == 2:
         raise ValueError("fixed: cannot fix both focus_distance and aperture_radius")
-    rgb_a, depth_a = _check_images(rgb, depth, camera)
-    hw = depth_a.shape
+    rgb_a, depth_a, s = _check_images(rgb, depth, camera)
+    hw = (camera.height, camera.width)
     tgt = np.asarray(target)
     want = (hw + (3,)) if not batch else (tgt.shape[:1] + hw + (3,))
     if tgt.ndim != len(want) or tgt.shape != want:
         raise ValueError(
             f"target: expected shape {'(B, %d, %d, 3)' % hw if batch else hw + (3,)} to match "
-            f"rgb/depth, got {tgt.shape}")
+            f"the camera{' (rgb/depth are %dx finer)' % s if s > 1 else ' and rgb/depth'}, "
+            f"got {tgt.shape}")
     _check_finite("target", tgt)
-    weight = _depth_weight(depth_a, mask)
+    weight = _depth_weight(depth_a, mask, hw)
     finite = np.isfinite(depth_a)
     if mask is not None and weight.sum() <= 0:
         raise ValueError("mask: selects no pixels")
-    if not finite[weight > 0].any():
+    if not finite[_upsample(weight, s) > 0].any():
         raise ValueError("depth: no finite depth under the mask (all background): nothing to fit")
     d0 = float(camera.focus_distance)
     a0 = float(camera.aperture_radius)
@@ -924,7 +936,7 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
     for key in bounds:
         if key not in PARAMS:
             raise ValueError(f"bounds: keys must be in {PARAMS}, got {key!r}")
-    z = depth_a[finite & (weight > 0)]
+    z = depth_a[finite & (_upsample(weight, s) > 0)]
     if "focus_distance" in bounds:
         lo, hi = (float(v) for v in bounds["focus_distance"])
         if not lo > 0 or math.isnan(hi):
@@ -956,7 +968,12 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
             raise ValueError("camera.aperture_radius: the initial guess is 0 (a pinhole); give a "
                              "positive guess or bounds={'aperture_radius': (lo, hi)}")
         a_bounds = (a0 / 10.0, a0 * 10.0)
-    return tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds
+    return tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds, s
+
+
+def _upsample(weight: np.ndarray, s: int) -> np.ndarray:
+    """(h, w) target-pixel weights on the s times finer grid of a supersampled sharp input."""
+    return weight if s == 1 else np.repeat(np.repeat(weight, s, axis=0), s, axis=1)
 
 
 def _pool(x: Array, f: int, spatial_axis: int) -> Array:
@@ -998,7 +1015,9 @@ def _coarse_extras(extras: _Extras | None, f: int) -> _Extras | None:
     return _Extras(reflection=refl, reflection_depth=refl_z, layers=layers)
 
 
-def _coarse_data(data: _Data, f: int) -> _Data:
+def _pool_sharp(data: _Data, f: int, weight: Array) -> tuple[Array, Array, _Extras | None]:
+    """The sharp input (rgb, depth, extras) box-averaged by f; `weight`: the pixel weights at its
+    resolution."""
     # A block's depth is its mean inverse depth weighted by max(radiance, q), q the image's 90th
     # percentile of radiance: a highlight far brighter than the rest (HDR) is blurred at its own
     # CoC, not at its dim block's depth, while ordinary (LDR) textures keep the plain mean.
@@ -1008,13 +1027,29 @@ def _coarse_data(data: _Data, f: int) -> _Data:
     # (a clipped highlight masked out of the fit would otherwise still decide it); a block
     # with no unmasked pixel keeps the plain mean.
     radiance = jnp.mean(jnp.abs(data.rgb), axis=-1)
-    seen = data.weight > 0
+    seen = weight > 0
     floor = jnp.nanpercentile(jnp.where(seen, radiance, jnp.nan), 90.0)
     radiance = jnp.maximum(radiance, floor + jnp.finfo(radiance.dtype).tiny)
     radiance = radiance * jnp.where(seen, 1.0, 1e-6)
-    return _Data(target=_pool(data.target, f, 0), rgb=_pool(data.rgb, f, 0),
-                 depth=_pool_depth(data.depth, f, radiance), weight=_pool(data.weight, f, 0),
-                 extras=_coarse_extras(data.extras, f))
+    return (_pool(data.rgb, f, 0), _pool_depth(data.depth, f, radiance),
+            _coarse_extras(data.extras, f))
+
+
+def _coarse_data(data: _Data, f: int) -> _Data:
+    """`data` (sharp input at the target's resolution) box-averaged by f."""
+    rgb, depth, extras = _pool_sharp(data, f, data.weight)
+    return _Data(target=_pool(data.target, f, 0), rgb=rgb, depth=depth,
+                 weight=_pool(data.weight, f, 0), extras=extras)
+
+
+def _search_data(data: _Data, s: int) -> _Data:
+    """A sharp input s times finer than the target (`Camera.scaled`) box-averaged to the
+    target's resolution: what the multi-start, scan and screens fit (s = 1: `data` itself)."""
+    if s == 1:
+        return data
+    weight = jnp.repeat(jnp.repeat(data.weight, s, axis=0), s, axis=1)
+    rgb, depth, extras = _pool_sharp(data, s, weight)
+    return _Data(target=data.target, rgb=rgb, depth=depth, weight=data.weight, extras=extras)
 
 
 def _coarse_camera(camera: Camera, f: int) -> Camera:
@@ -1067,8 +1102,14 @@ def _unpack(name: str, rgb, depth, camera, model):
     extras = _Extras(reflection=arr(rgbd.reflection), reflection_depth=arr(rgbd.reflection_depth),
                      layers=None if lay is None else Layers(rgb=arr(lay.rgb), depth=arr(lay.depth),
                                                             alpha=arr(lay.alpha)))
+    h, w = np.shape(rgbd.depth)[-2:]
+    s = h // camera.height
+    if s > 1 and (h, w) == (s * camera.height, s * camera.width):  # supersampled (see fit_focus)
+        camera_sharp = camera.scaled(s)
+    else:
+        camera_sharp = camera
     try:  # the defocus' own checks of the mirror layer and the peeled layers
-        _validate_rgbd(arr(rgbd.rgb), arr(rgbd.depth), camera, extras.reflection,
+        _validate_rgbd(arr(rgbd.rgb), arr(rgbd.depth), camera_sharp, extras.reflection,
                        extras.reflection_depth, extras.layers)
     except ValueError as e:
         raise ValueError(str(e).replace("defocus:", f"{name}:", 1)) from None
@@ -1118,7 +1159,7 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
              max_window, defocus_options, start_steps, screen_steps, scan_points,
              name="fit_focus"):
     rgb, depth, camera, extras = _unpack(name, rgb, depth, camera, model)
-    tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds = _validate(
+    tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds, s = _validate(
         target, rgb, depth, camera, mask, bounds, fixed, solver, loss, batch,
         dict(starts=(starts, 1), max_steps=(max_steps, 1), start_steps=(start_steps, 1),
              screen_steps=(screen_steps, 0), scan_points=(scan_points, 0)),
@@ -1158,11 +1199,12 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
     if 1 in free:
         fracs = np.concatenate([[frac0[1]], (np.arange(_APERTURE_GRID) + 0.5) / _APERTURE_GRID])
         y_apertures = jnp.asarray(logit(fracs), dtype)
-    f = _levels(depth_a.shape, coarse_size)
+    f = _levels(tgt.shape[-3:-1], coarse_size)
+    weight_sharp = _upsample(weight, s)  # on the sharp input's grid
     # the full-resolution scan of u (`_scan`): evenly spaced in u, the guess's aperture (each
     # point then takes its best one, as the starts do), with the scene's most common inverse
     # depths merged in (their places in the sorted scan: `modes`)
-    inv = 1.0 / depth_a[np.isfinite(depth_a) & (weight > 0)]
+    inv = 1.0 / depth_a[np.isfinite(depth_a) & (weight_sharp > 0)]
     y_scan = None
     if 0 in free and scan_points > 0 and f > 1 and screen_steps > 0:
         grid = (np.arange(scan_points) + 0.5) / scan_points
@@ -1188,14 +1230,16 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         delta0 = jnp.asarray(np.inf, dtype)  # plain least squares (all robust weights 1)
     if model is None:
         win = window if window is not None else min(
-            _reach(_depths_seen(depth_a, weight, extras), float(camera.pixel_scale), (u_lo, u_hi),
-                   a_bounds[1]),
+            _reach(_depths_seen(depth_a, weight_sharp, extras), float(camera.pixel_scale),
+                   (u_lo, u_hi), a_bounds[1]),
             max_window)
-        model = DefocusModel(window=float(max(win, 1.0)), **(defocus_options or {}))
+        base = DefocusModel(window=float(max(win, 1.0)), **(defocus_options or {}))
         # the lens method only polishes: its minimum lies in the sliced model's basin, and a
         # search with it would cost ~1000x as much (see defocus_options)
-        search = (dataclasses.replace(model, method="sliced", samples=None)
-                  if model.method == "lens" else model)
+        search = (dataclasses.replace(base, method="sliced", samples=None)
+                  if base.method == "lens" else base)
+        # the polish's on a supersampled sharp input: CoCs in its s times smaller pixels
+        model = dataclasses.replace(base, window=base.window * s) if s > 1 else base
         level_models = tuple(dataclasses.replace(search, window=max(search.window / g, 1.0))
                              for g in factors)
     else:
@@ -1206,18 +1250,20 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         auto_scale=(loss != "l2" and loss_scale is None), free=free, rtol=float(rtol),
         atol=float(atol), max_steps=int(max_steps), factors=factors, robust_rounds=robust_rounds,
         start_steps=int(start_steps), screen_steps=int(screen_steps),
-        scan_points=int(scan_points))
+        scan_points=int(scan_points), supersample=s)
     data = _Data(target=jnp.asarray(tgt, dtype), rgb=jnp.asarray(rgb_a, dtype),
                  depth=jnp.asarray(depth_a, dtype), weight=jnp.asarray(weight, dtype),
                  extras=extras)
     cameras = tuple(_coarse_camera(camera, g) for g in factors)
-    return data, camera, cameras, param, y_starts, u_scene, delta0, spec
+    return data, camera, camera.scaled(s), cameras, param, y_starts, u_scene, delta0, spec
 
 
 @eqx.filter_jit
-def _fit_jit(data, camera, cameras, param, y_starts, u_scene, delta0, spec):
-    levels = tuple(_coarse_data(data, g) for g in spec.factors)
-    return _fit_core(data, levels, camera, cameras, param, y_starts, u_scene, delta0, spec)
+def _fit_jit(data, camera, fine, cameras, param, y_starts, u_scene, delta0, spec):
+    search = _search_data(data, spec.supersample)
+    levels = tuple(_coarse_data(search, g) for g in spec.factors)
+    return _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_scene,
+                     delta0, spec)
 
 
 def _message(raw: dict, fixed_names: tuple[str, ...], max_condition: float, threshold: float,
@@ -1432,8 +1478,8 @@ def fit_focus(
                     rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds,
                     window, max_window, defocus_options, start_steps, screen_steps,
                     scan_points)
-    data, camera, cameras, param, y_starts, u_scene, delta0, spec = prep
-    raw = _fit_jit(data, camera, cameras, param, y_starts, u_scene, delta0, spec)
+    data, camera, fine, cameras, param, y_starts, u_scene, delta0, spec = prep
+    raw = _fit_jit(data, camera, fine, cameras, param, y_starts, u_scene, delta0, spec)
     fixed_names = tuple(PARAMS[i] for i in range(2) if i not in spec.free)
     return _result(raw, camera, fixed_names, max_condition, ambiguity_threshold, spec, False)
 
@@ -1457,7 +1503,8 @@ def fit_focus_scene(target: ArrayLike, scene, camera: Camera, *, spp: int = 1,
 
 
 @eqx.filter_jit
-def _batch_jit(targets, data, camera, cameras, param, y_starts, u_scene, delta0, spec, mesh):
+def _batch_jit(targets, data, camera, fine, cameras, param, y_starts, u_scene, delta0, spec,
+               mesh):
     from jax.sharding import NamedSharding, PartitionSpec
 
     batch = NamedSharding(mesh, PartitionSpec("batch"))
@@ -1465,8 +1512,10 @@ def _batch_jit(targets, data, camera, cameras, param, y_starts, u_scene, delta0,
 
     def one(t):
         d = eqx.tree_at(lambda d: d.target, data, t)
-        levels = tuple(_coarse_data(d, g) for g in spec.factors)
-        return _fit_core(d, levels, camera, cameras, param, y_starts, u_scene, delta0, spec)
+        search = _search_data(d, spec.supersample)
+        levels = tuple(_coarse_data(search, g) for g in spec.factors)
+        return _fit_core(d, search, levels, camera, fine, cameras, param, y_starts, u_scene,
+                         delta0, spec)
 
     # XLA's SPMD partitioner splits the vmapped fits along the batch axis; the shared images are
     # replicated. (Under vmap every fit in a shard steps until the slowest has converged.)
@@ -1513,7 +1562,7 @@ def fit_focus_batch(
                     opts["loss_scale"], opts["robust_rounds"], opts["window"],
                     opts["max_window"], opts["defocus_options"], opts["start_steps"],
                     opts["screen_steps"], opts["scan_points"], name="fit_focus_batch")
-    data, camera, cameras, param, y_starts, u_scene, delta0, spec = prep
+    data, camera, fine, cameras, param, y_starts, u_scene, delta0, spec = prep
     devices = list(jax.devices() if devices is None else devices)
     mesh = Mesh(np.array(devices), ("batch",))
     tg = data.target
@@ -1523,7 +1572,8 @@ def fit_focus_batch(
         tg = jnp.concatenate([tg, jnp.repeat(tg[-1:], pad, axis=0)])
     tg = jax.device_put(tg, NamedSharding(mesh, PartitionSpec("batch")))
     shared = eqx.tree_at(lambda d: d.target, data, data.target[0])
-    raw = _batch_jit(tg, shared, camera, cameras, param, y_starts, u_scene, delta0, spec, mesh)
+    raw = _batch_jit(tg, shared, camera, fine, cameras, param, y_starts, u_scene, delta0, spec,
+                     mesh)
     raw = jax.tree_util.tree_map(lambda a: np.asarray(a)[:b], raw)
     fixed_names = tuple(PARAMS[i] for i in range(2) if i not in spec.free)
     return _result(raw, camera, fixed_names, opts["max_condition"], opts["ambiguity_threshold"],

@@ -165,3 +165,17 @@ def test_replace_names_static_and_unknown_fields():
         cam.replace(width=16)
     with pytest.raises(ValueError, match="unknown field 'focal_length'"):
         cam.replace(focal_length=0.05)
+
+
+def test_scaled_camera_box_averages_to_the_original():
+    cam = Camera(width=8, height=6, fov=50.0, focus_distance=2.0, aperture_radius=0.1)
+    fine = cam.scaled(3)
+    assert (fine.width, fine.height) == (24, 18)
+    assert float(fine.pixel_scale) == pytest.approx(3 * float(cam.pixel_scale))
+    assert cam.scaled(1) is cam
+    # the mean of each 3x3 block's pixel-centre directions is the coarse pixel's
+    d = np.asarray(fine.pixel_directions()).reshape(6, 3, 8, 3, 3).mean((1, 3))
+    np.testing.assert_allclose(d, np.asarray(cam.pixel_directions()), atol=1e-12)
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="Camera.scaled: factor must be an integer >= 1"):
+            cam.scaled(bad)

@@ -254,6 +254,28 @@ def test_real_defocus_recovery():
     assert abs(float(res.aperture_radius) / 0.15 - 1) < 1e-4
 
 
+def test_supersampled_sharp_input():
+    """A sharp input rendered S times finer (`Camera.scaled(S)`): the polish runs the model on it
+    and box-averages the prediction to the target's grid, so a target made that way is
+    recovered exactly; the mask and the result are on the target's grid."""
+    s = 2
+    rgb, depth = scene()
+    rgb2 = jnp.repeat(jnp.repeat(rgb, s, 0), s, 1) * (0.8 + 0.4 * jax.random.uniform(
+        jax.random.key(3), (N * s, N * s, 1)))  # detail finer than the target's pixels
+    depth2 = jnp.repeat(jnp.repeat(depth, s, 0), s, 1)
+    fine = blur_model(rgb2, depth2, CAM.replace(**TRUE).scaled(s))
+    target = fine.reshape(N, s, N, s, 3).mean((1, 3))
+    mask = np.ones((N, N), bool)
+    mask[:4] = False
+    res = fit_focus(target, rgb2, depth2, CAM, mask=mask, **KW)
+    assert abs(float(res.focus_distance) / 1.7 - 1) < 1e-6
+    assert abs(float(res.aperture_radius) / 0.08 - 1) < 1e-6
+    assert bool(res.converged) and res.camera.width == N
+    # the same target fitted from the sharp input at the target's resolution: a model mismatch
+    coarse = fit_focus(target, rgb2.reshape(N, s, N, s, 3).mean((1, 3)), depth, CAM, **KW)
+    assert abs(float(coarse.focus_distance) / 1.7 - 1) > 1e-4
+
+
 def test_coarse_depth_follows_the_light():
     """The multi-start level blurs a block's light at the depth of what emits it: one HDR
     pixel (radiance 100, depth 1) among 15 dim ones (0.01, depth 4) gives the block depth ~1,
@@ -379,8 +401,12 @@ def test_bad_shapes():
     _bad("target: expected shape", target=jnp.zeros((N, N - 1, 3)))
     _bad("rgb: expected shape", rgb=jnp.zeros((N, N, 4)))
     _bad("depth: expected shape", depth=jnp.ones((N, N, 1)))
-    _bad("camera: width x height", camera=Camera(width=16, height=16, fov=60.0,
+    _bad("camera: width x height", camera=Camera(width=24, height=24, fov=60.0,
                                                  focus_distance=2.0, aperture_radius=0.1))
+    # an image twice the camera's size is a supersampled sharp input: the target must then be
+    # the camera's size
+    _bad(r"target: expected shape \(16, 16, 3\) to match the camera \(rgb/depth are 2x finer\)",
+         camera=Camera(width=16, height=16, fov=60.0, focus_distance=2.0, aperture_radius=0.1))
     _bad("mask: expected shape", mask=np.ones((3, 3)))
 
 
