@@ -276,6 +276,24 @@ def test_supersampled_sharp_input():
     assert abs(float(coarse.focus_distance) / 1.7 - 1) > 1e-4
 
 
+def test_fit_focus_scene_supersampled():
+    """fit_focus_scene renders the sharp input (here 2x finer) once and fits with it."""
+    import os
+
+    path = os.path.join(os.path.dirname(__file__), "..", "examples", "quads.json")
+    scene, base = dofjax.load_scene(path), dofjax.load_camera(path)
+    cam = Camera(width=N, height=N, fov=base.fov, focus_distance=6.0, aperture_radius=0.05,
+                 eye=base.eye, target=base.target, up=base.up)
+    true = cam.replace(focus_distance=3.0, aperture_radius=0.08)
+    sharp = dofjax.render(scene, cam.scaled(2), spp=1)
+    target = blur_model(sharp.rgb, sharp.depth, true.scaled(2)).reshape(N, 2, N, 2, 3).mean(
+        (1, 3))
+    res = dofjax.fit_focus_scene(target, scene, cam, supersample=2, model=blur_model, starts=4,
+                                 bounds=BOUNDS)
+    assert abs(float(res.focus_distance) / 3.0 - 1) < 1e-5
+    assert abs(float(res.aperture_radius) / 0.08 - 1) < 1e-5
+
+
 def test_coarse_depth_follows_the_light():
     """The multi-start level blurs a block's light at the depth of what emits it: one HDR
     pixel (radiance 100, depth 1) among 15 dim ones (0.01, depth 4) gives the block depth ~1,
