@@ -75,7 +75,7 @@ from ._kernels import (
 )
 from ._lens import LENS_SAMPLES, lens_defocus
 from ._lens import levels as lens_levels
-from ._numerics import inverse_depth
+from ._numerics import box_pool, inverse_depth
 from ._rgbd import RGBD, Layers
 from ._sliced import sliced_defocus
 
@@ -178,7 +178,8 @@ def _validate(rgb, depth, camera, reflection, reflection_depth, layers):
     if (camera.height, camera.width) != (h, w):
         raise ValueError(
             f"defocus: camera is {camera.width}x{camera.height} (width x height) but the image is "
-            f"{w}x{h}"
+            f"{w}x{h} (nor an integer multiple of it: a sharp input rendered s times finer, with "
+            "camera.scaled(s))"
         )
     _check_finite("rgb", rgb)
     _check_depth("depth", depth)
@@ -520,8 +521,20 @@ def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, meth
     depth = _as_array(depth, dtype)
     reflection = _as_array(reflection, dtype)
     reflection_depth = _as_array(reflection_depth, dtype)
+    s = supersampling(rgb.shape, camera)
+    camera = camera.scaled(s)
     _validate(rgb, depth, camera, reflection, reflection_depth, layers)
-    return rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio
+    return rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio, s
+
+
+def supersampling(shape: tuple[int, ...], camera: Camera) -> int:
+    """s >= 2 when an (H, W, ...) image is exactly s times the camera's size per side (a sharp
+    input rendered with `camera.scaled(s)`), else 1 (the sizes must then be equal)."""
+    if len(shape) < 2 or camera.height < 1:
+        return 1
+    h, w = shape[:2]
+    s = h // camera.height
+    return s if s > 1 and (h, w) == (s * camera.height, s * camera.width) else 1
 
 
 def defocus(
@@ -549,7 +562,12 @@ def defocus(
     Args:
         rgb: (H, W, 3) sharp linear colour (float32 or float64; the result has the same dtype).
         depth: (H, W) z-depth in world units, > 0, +inf for background.
-        camera: focus_distance, aperture_radius and pixel scale; its width/height must be W/H.
+        camera: focus_distance, aperture_radius and pixel scale; its width/height must be W/H,
+            or W/s and H/s for an integer s: a sharp input rendered s times finer
+            (`render(scene, camera.scaled(s), ...)`) is defocused on its own grid and the result
+            box-averaged to the camera's (H/s, W/s). A pixel on a depth edge then mixes its
+            surfaces over 1/s of a pixel, each blurred at its own depth (see
+            benchmarks/README.md for what it buys); window and info stay in the camera's px.
         shape: "disc" or "polygon" (then `blades` >= 3 and `rotation` in radians, counter-clockwise,
             0 puts a vertex on +x). Near-field (c > 0) kernels are the point reflection of far ones.
         ratio: anamorphic width / height of the aperture (1 = round).
@@ -578,9 +596,11 @@ def defocus(
         ValueError: shape mismatches, non-finite colours, depth <= 0 or NaN, negative aperture,
             bad shape parameters. A clamped CoC is a `DefocusWarning`, not an error.
     """
-    rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio = _inputs(
-        "defocus", rgb, depth, camera, reflection, reflection_depth, layers, method, shape, blades,
-        rotation, ratio, samples)
+    (rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio,
+     s) = _inputs("defocus", rgb, depth, camera, reflection, reflection_depth, layers, method,
+                  shape, blades, rotation, ratio, samples)
+    # a supersampled input (s > 1): `camera` is now the fine one, CoCs in its pixels; the window
+    # is given and reported, and the result returned, on the coarse grid
 
     concrete = all(
         _is_concrete(v)
@@ -596,36 +616,39 @@ def defocus(
         inv = np.concatenate([1.0 / np.ravel(z).astype(np.float64) for z in zs])
         ak = float(camera.aperture_radius) * float(camera.pixel_scale)
         max_abs = float(np.max(np.abs(ak * (inv - 1.0 / float(camera.focus_distance)))))
+    reported = None if max_abs is None else max_abs / s
     if window is None:
         if max_abs is None:
             raise ValueError(
                 "defocus: under jax.jit/vmap the window cannot be chosen from the image; pass a "
                 "static window=<largest |CoC| in px> (or use dofjax.defocus_fn)"
             )
-        if float(camera.aperture_radius) == 0.0 or max_abs < SKIP_COC:
-            out = rgb
-            info = DefocusInfo(max_abs, None, True, False, 1)
+        if float(camera.aperture_radius) == 0.0 or reported < SKIP_COC:
+            out = box_pool(rgb, s)
+            info = DefocusInfo(reported, None, True, False, 1)
             return (out, info) if return_info else out
         win = bucket_window(max_abs)
     else:
         window = float(window)
         if not (math.isfinite(window) and window > 0):
             raise ValueError(f"defocus: window must be > 0 px, got {window!r}")
-        win = bucket_window(window)
+        win = bucket_window(window * s)
     clamped = max_abs is not None and max_abs > win * (1.0 + 1e-6)
     if clamped:
         warnings.warn(
-            f"defocus: the largest CoC radius is {max_abs:.4g} px but the window is {win:g} px "
-            f"(supported maximum {MAX_WINDOW:g}); larger blurs are clamped to the window",
+            f"defocus: the largest CoC radius is {reported:.4g} px but the window is "
+            f"{win / s:g} px (supported maximum {MAX_WINDOW / s:g}); larger blurs are clamped "
+            "to the window",
             DefocusWarning,
             stacklevel=2,
         )
     out, _ = _run(rgb, depth, camera, reflection, reflection_depth, layers, win, blades, rotation,
                   ratio, method, samples)
+    out = box_pool(out, s)
     if return_info:
         n = (len(lens_levels(win)) if method == "lens"
              else len(make_plan(win, blades, rotation, ratio).levels))
-        return out, DefocusInfo(max_abs, win, False, clamped, n)
+        return out, DefocusInfo(reported, win / s, False, clamped, n)
     return out
 
 
@@ -669,17 +692,17 @@ def defocus_fn(
         f(focus_distance, aperture_radius): world units (scalars or 0-d arrays) -> image. The
         function also has `.window` (px) and `.max_abs_coc(focus, aperture)` (jittable).
     """
-    rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio = _inputs(
-        "defocus_fn", rgb, depth, camera, reflection, reflection_depth, layers, method, shape,
-        blades, rotation, ratio, samples)
+    (rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio,
+     s) = _inputs("defocus_fn", rgb, depth, camera, reflection, reflection_depth, layers,
+                  method, shape, blades, rotation, ratio, samples)
     if window is None:
-        c = np.abs(np.asarray(jnp.asarray(_coc_host(depth, camera))))
+        c = np.abs(np.asarray(jnp.asarray(_coc_host(depth, camera)))) / s
         window = max(2.0 * float(c.max()), 1.0)
     window = float(window)
     if not (math.isfinite(window) and window > 0):
         raise ValueError(f"defocus_fn: window must be > 0 px, got {window!r}")
-    win = bucket_window(window)
-    pixel_scale = camera.pixel_scale
+    win = bucket_window(window * s)  # (a supersampled input: in its fine pixels)
+    pixel_scale = camera.pixel_scale / s
 
     def _cam(focus_distance, aperture_radius):
         return camera.replace(focus_distance=focus_distance, aperture_radius=aperture_radius)
@@ -687,13 +710,13 @@ def defocus_fn(
     def f(focus_distance, aperture_radius):
         out, _ = _run(rgb, depth, _cam(focus_distance, aperture_radius), reflection,
                       reflection_depth, layers, win, blades, rotation, ratio, method, samples)
-        return out
+        return box_pool(out, s)
 
     def max_abs_coc(focus_distance, aperture_radius):
         inv = inverse_depth(depth)
         return jnp.max(jnp.abs(aperture_radius * pixel_scale * (inv - 1.0 / focus_distance)))
 
-    f.window = win
+    f.window = win / s
     f.max_abs_coc = max_abs_coc
     return f
 

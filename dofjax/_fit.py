@@ -67,6 +67,7 @@ from ._autodiff import value_and_jacobian
 from ._defocus import plain_autodiff
 from ._camera import Camera, coc_radius
 from ._linalg import ThinQR, unit_column_svd
+from ._numerics import box_pool as _pool
 from ._numerics import inverse_depth, safe_div
 from ._rgbd import RGBD, Layers
 
@@ -974,17 +975,6 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
 def _upsample(weight: np.ndarray, s: int) -> np.ndarray:
     """(h, w) target-pixel weights on the s times finer grid of a supersampled sharp input."""
     return weight if s == 1 else np.repeat(np.repeat(weight, s, axis=0), s, axis=1)
-
-
-def _pool(x: Array, f: int, spatial_axis: int) -> Array:
-    """Box-average the two axes from `spatial_axis` by f (cropping to multiples of f)."""
-    h, w = x.shape[spatial_axis], x.shape[spatial_axis + 1]
-    hc, wc = (h // f) * f, (w // f) * f
-    sl = [slice(None)] * x.ndim
-    sl[spatial_axis], sl[spatial_axis + 1] = slice(0, hc), slice(0, wc)
-    x = x[tuple(sl)]
-    shape = x.shape[:spatial_axis] + (hc // f, f, wc // f, f) + x.shape[spatial_axis + 2:]
-    return x.reshape(shape).mean(axis=(spatial_axis + 1, spatial_axis + 3))
 
 
 def _pool_depth(depth: Array, f: int, weight: Array | None = None) -> Array:

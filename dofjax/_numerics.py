@@ -56,3 +56,16 @@ def smooth_floor(r: ArrayLike, r0: float) -> Array:
     """`sqrt(r^2 + r0^2)`: a smooth lower bound r0 on |r| (DESIGN.md section 3), C-infinity in r."""
     r = jnp.asarray(r)
     return jnp.sqrt(r * r + r0 * r0)
+
+
+def box_pool(x: Array, f: int, spatial_axis: int = 0) -> Array:
+    """Box-average the two axes from `spatial_axis` by f (cropping to multiples of f)."""
+    if f == 1:
+        return x
+    h, w = x.shape[spatial_axis], x.shape[spatial_axis + 1]
+    hc, wc = (h // f) * f, (w // f) * f
+    sl = [slice(None)] * x.ndim
+    sl[spatial_axis], sl[spatial_axis + 1] = slice(0, hc), slice(0, wc)
+    x = x[tuple(sl)]
+    shape = x.shape[:spatial_axis] + (hc // f, f, wc // f, f) + x.shape[spatial_axis + 2:]
+    return x.reshape(shape).mean(axis=(spatial_axis + 1, spatial_axis + 3))

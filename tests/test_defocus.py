@@ -308,3 +308,32 @@ def test_bad_input_errors(change, match):
 
 def test_public_names():
     assert dofjax.defocus is defocus and dofjax.defocus_fn is defocus_fn
+
+
+@pytest.mark.parametrize("method", ["sliced", "lens"])
+def test_supersampled_input_is_defocused_on_its_grid_and_box_averaged(method):
+    # an input s times the camera's size: defocus(fine, camera) == pool(defocus(fine, fine cam))
+    n, s = 16, 2
+    cam = camera(n, aperture=0.3)
+    fine_cam = cam.scaled(s)
+    rng = np.random.default_rng(9)
+    rgb = rng.random((n * s, n * s, 3))
+    depth = np.where(rng.random((n * s, n * s)) < 0.5, 1.5, 3.0)
+    out, info = defocus(rgb, depth, cam, method=method, return_info=True)
+    fine, fine_info = defocus(rgb, depth, fine_cam, method=method, return_info=True)
+    pooled = np.asarray(fine).reshape(n, s, n, s, 3).mean((1, 3))
+    assert out.shape == (n, n, 3)
+    np.testing.assert_allclose(np.asarray(out), pooled, atol=1e-12)
+    # the window and the largest CoC are in the camera's pixels
+    assert info.max_abs_coc == pytest.approx(fine_info.max_abs_coc / s)
+    assert info.window == fine_info.window / s and not info.skipped
+    f = defocus_fn(rgb, depth, cam, window=info.window, method=method)
+    np.testing.assert_allclose(np.asarray(jax.jit(f)(FOCUS, 0.3)), pooled, atol=1e-12)
+    assert float(f.max_abs_coc(FOCUS, 0.3)) == pytest.approx(info.max_abs_coc)
+    # aperture 0: skipped, the input box-averaged
+    out0, info0 = defocus(rgb, depth, camera(n, aperture=0.0), return_info=True)
+    assert info0.skipped
+    np.testing.assert_allclose(np.asarray(out0), rgb.reshape(n, s, n, s, 3).mean((1, 3)))
+    # sizes that are not a multiple of the camera's are still an error
+    with pytest.raises(ValueError, match="nor an integer multiple"):
+        defocus(rgb[:-1], depth[:-1], cam)
