@@ -231,6 +231,20 @@ def run_scene(path, args):
                         reflection_depth=gsharp.reflection_depth, method=m))[crop])))
                 variants.append((f"{method}, {args.layers} layers, guard band", dict(
                     f=lambda m=method: np.asarray(dofjax.defocus(gsharp, gcam, method=m))[crop])))
+            if args.supersample > 1:
+                # the same, the sharp input rendered s times finer (as many samples per frame
+                # pixel), defocused on its grid and box-averaged (`defocus` does it)
+                sup = args.supersample
+                fsharp = dofjax.render(scene, gcam.scaled(sup),
+                                       spp=max(sharp_spp // (sup * sup), 1), layers=args.layers)
+                for method in args.methods:
+                    variants.append((f"{method}, single layer, guard band, x{sup}", dict(
+                        f=lambda m=method: np.asarray(dofjax.defocus(
+                            fsharp.rgb, fsharp.depth, gcam, reflection=fsharp.reflection,
+                            reflection_depth=fsharp.reflection_depth, method=m))[crop])))
+                    variants.append((f"{method}, {args.layers} layers, guard band, x{sup}", dict(
+                        f=lambda m=method: np.asarray(
+                            dofjax.defocus(fsharp, gcam, method=m))[crop])))
         for label, v in variants:
             img = np.asarray(v["f"]())
             images[(label, sharp_spp)] = img
@@ -339,6 +353,9 @@ def main():
     ap.add_argument("--guard", action="store_true",
                     help="also defocus a sharp input rendered max-coc + 2 px beyond the frame "
                          "(then cropped), at the largest sharp spp")
+    ap.add_argument("--supersample", type=int, default=1,
+                    help="with --guard: also rows with the sharp input rendered this many times "
+                    "finer per side (Camera.scaled), defocused on its grid and box-averaged")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--map-max", type=float, default=0.1, help="error-map colour scale top")
     ap.add_argument("--cache", default=os.path.join(HERE, "results", "cache"))

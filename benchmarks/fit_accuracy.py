@@ -592,6 +592,8 @@ def ref_config(args) -> str:
     band = border_px(args)
     border = (f"{band} px ({'auto: ceil(window) + 1' if args.ref_border == 'auto' else 'fixed'})"
               if band > 0 else "none (every pixel fitted)")
+    finer = (f", polished on a sharp input {args.ref_supersample}x finer per side"
+             if args.ref_supersample > 1 else "")
     return (f"Reference configuration: reference spp {args.spp}; sharp input: spp "
             f"{args.ref_sharp_spp}, {layers} (`--ref-layers {args.ref_layers}`); border mask: "
             f"{border} (`--ref-border {args.ref_border}`); depth-edge mask: "
@@ -599,7 +601,7 @@ def ref_config(args) -> str:
             f"(`--ref-edge-mask {args.ref_edge_mask:g}`); start: "
             f"{'truth' if args.start_at_truth else 'random'}; fit model: {args.ref_method}"
             f"{f' ({args.ref_samples} lens points)' if args.ref_samples else ''}"
-            f"{f', polished on a sharp input {args.ref_supersample}x finer per side' if args.ref_supersample > 1 else ''}"
+            f"{finer}"
             f"; renderer source hash "
             f"{renderer_hash()} (in the cache key), model/fit source hash "
             f"{renderer_hash(MODEL_SOURCES)}.\n")

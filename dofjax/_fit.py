@@ -64,8 +64,8 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._autodiff import value_and_jacobian
-from ._defocus import plain_autodiff
 from ._camera import Camera, coc_radius
+from ._defocus import plain_autodiff
 from ._linalg import ThinQR, unit_column_svd
 from ._numerics import box_pool as _pool
 from ._numerics import inverse_depth, safe_div
@@ -921,8 +921,8 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
     want = (hw + (3,)) if not batch else (tgt.shape[:1] + hw + (3,))
     if tgt.ndim != len(want) or tgt.shape != want:
         raise ValueError(
-            f"target: expected shape {'(B, %d, %d, 3)' % hw if batch else hw + (3,)} to match "
-            f"the camera{' (rgb/depth are %dx finer)' % s if s > 1 else ' and rgb/depth'}, "
+            f"target: expected shape {f'(B, {hw[0]}, {hw[1]}, 3)' if batch else hw + (3,)} to "
+            f"match the camera{f' (rgb/depth are {s}x finer)' if s > 1 else ' and rgb/depth'}, "
             f"got {tgt.shape}")
     _check_finite("target", tgt)
     weight = _depth_weight(depth_a, mask, hw)
