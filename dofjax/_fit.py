@@ -65,7 +65,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._autodiff import value_and_jacobian
 from ._camera import Camera, coc_radius
-from ._defocus import plain_autodiff
+from ._defocus import plain_autodiff, supersampling
 from ._linalg import ThinQR, unit_column_svd
 from ._numerics import box_pool as _pool
 from ._numerics import inverse_depth, safe_div
@@ -863,8 +863,8 @@ def _check_images(rgb, depth, camera: Camera) -> tuple[np.ndarray, np.ndarray, i
     rgb_a = np.asarray(rgb)
     if rgb_a.shape != hw + (3,):
         raise ValueError(f"rgb: expected shape {hw + (3,)} to match depth {hw}, got {rgb_a.shape}")
-    s = hw[0] // camera.height
-    if s < 1 or hw != (s * camera.height, s * camera.width):
+    s = supersampling(hw, camera)
+    if hw != (s * camera.height, s * camera.width):
         raise ValueError(
             f"camera: width x height {camera.width}x{camera.height} does not match the sharp "
             f"image {hw[1]}x{hw[0]} (nor divides it: a sharp input rendered s times finer, with "
@@ -1092,12 +1092,8 @@ def _unpack(name: str, rgb, depth, camera, model):
     extras = _Extras(reflection=arr(rgbd.reflection), reflection_depth=arr(rgbd.reflection_depth),
                      layers=None if lay is None else Layers(rgb=arr(lay.rgb), depth=arr(lay.depth),
                                                             alpha=arr(lay.alpha)))
-    h, w = np.shape(rgbd.depth)[-2:]
-    s = h // camera.height
-    if s > 1 and (h, w) == (s * camera.height, s * camera.width):  # supersampled (see fit_focus)
-        camera_sharp = camera.scaled(s)
-    else:
-        camera_sharp = camera
+    # (a supersampled sharp input, see fit_focus: checked against its own camera)
+    camera_sharp = camera.scaled(supersampling(np.shape(rgbd.depth), camera))
     try:  # the defocus' own checks of the mirror layer and the peeled layers
         _validate_rgbd(arr(rgbd.rgb), arr(rgbd.depth), camera_sharp, extras.reflection,
                        extras.reflection_depth, extras.layers)
