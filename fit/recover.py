@@ -11,9 +11,9 @@ scene file (`--scene`; its camera section supplies pose and fov; mirrors are blu
 virtual depth; `--layers K` renders K peeled layers, `--supersample S` renders S times finer per
 side: see `fit_focus`). A sharp EXR may also be S times the target's size. `--method lens` fits
 with the lens model (the sliced model searches, the lens model polishes; for photographs and
-lens-sampled targets). The initial guess is the file's camera (or --focus/--aperture). Prints true (if the target's `dofjax:` metadata has it) vs
-recovered with standard errors, and writes PREFIX.json (the FitResult) and PREFIX.png
-(target | fitted | 4x |residual|).
+lens-sampled targets). The initial guess is the file's camera (or --focus/--aperture). Prints
+true (if the target's `dofjax:` metadata has it) vs recovered with standard errors, and writes
+PREFIX.json (the FitResult) and PREFIX.png (target | fitted | 4x |residual|).
 """
 
 from __future__ import annotations
@@ -84,7 +84,6 @@ def main(argv=None) -> None:
             sharp, smeta = dofjax.read_rgbd(a.sharp)
         except ValueError as e:
             raise SystemExit(f"recover: {e}") from None
-        depth = sharp.depth
         meta = {**smeta}
         if a.fov is not None:
             meta["fov"] = a.fov
