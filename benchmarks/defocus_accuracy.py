@@ -224,27 +224,16 @@ def run_scene(path, args):
             gcam = guarded(cam, g)
             gsharp = dofjax.render(scene, gcam, spp=sharp_spp, layers=args.layers)
             crop = (slice(g, g + cam.height), slice(g, g + cam.width))
-            for method in args.methods:
-                variants.append((f"{method}, single layer, guard band", dict(
-                    f=lambda m=method: np.asarray(dofjax.defocus(
-                        gsharp.rgb, gsharp.depth, gcam, reflection=gsharp.reflection,
-                        reflection_depth=gsharp.reflection_depth, method=m))[crop])))
-                variants.append((f"{method}, {args.layers} layers, guard band", dict(
-                    f=lambda m=method: np.asarray(dofjax.defocus(gsharp, gcam, method=m))[crop])))
+            variants += guarded_variants(args.methods, args.layers, gsharp, gcam, crop,
+                                         "guard band")
             if args.supersample > 1:
                 # the same, the sharp input rendered s times finer (as many samples per frame
                 # pixel), defocused on its grid and box-averaged (`defocus` does it)
                 sup = args.supersample
                 fsharp = dofjax.render(scene, gcam.scaled(sup),
                                        spp=max(sharp_spp // (sup * sup), 1), layers=args.layers)
-                for method in args.methods:
-                    variants.append((f"{method}, single layer, guard band, x{sup}", dict(
-                        f=lambda m=method: np.asarray(dofjax.defocus(
-                            fsharp.rgb, fsharp.depth, gcam, reflection=fsharp.reflection,
-                            reflection_depth=fsharp.reflection_depth, method=m))[crop])))
-                    variants.append((f"{method}, {args.layers} layers, guard band, x{sup}", dict(
-                        f=lambda m=method: np.asarray(
-                            dofjax.defocus(fsharp, gcam, method=m))[crop])))
+                variants += guarded_variants(args.methods, args.layers, fsharp, gcam, crop,
+                                             f"guard band, x{sup}")
         for label, v in variants:
             img = np.asarray(v["f"]())
             images[(label, sharp_spp)] = img
@@ -259,6 +248,20 @@ def run_scene(path, args):
     return dict(name=name, ref_spp=spp, ref_noise=noise, fractions=fractions, rows=rows,
                 images=images, masks=masks, width=cam.width, height=cam.height,
                 aperture=float(cam.aperture_radius))
+
+
+def guarded_variants(methods, layers, sharp, cam, crop, tag):
+    """(label, {f}) rows of every method on a guard-band render `sharp` (an RGBD for `cam`, or
+    finer: supersampled), single layer and layered, cropped back to the frame."""
+    out = []
+    for method in methods:
+        out.append((f"{method}, single layer, {tag}", dict(
+            f=lambda m=method: np.asarray(dofjax.defocus(
+                sharp.rgb, sharp.depth, cam, reflection=sharp.reflection,
+                reflection_depth=sharp.reflection_depth, method=m))[crop])))
+        out.append((f"{method}, {layers} layers, {tag}", dict(
+            f=lambda m=method: np.asarray(dofjax.defocus(sharp, cam, method=m))[crop])))
+    return out
 
 
 def error_map(result, args, file):
