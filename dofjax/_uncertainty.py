@@ -37,7 +37,7 @@ def _default_model(rgb, depth, camera, mask, bounds, window, max_window, defocus
     if window is None:
         # fit_focus's own validation and default bounds (the sharp rgb stands in for the target;
         # the caller has checked it already, so no message names the wrong argument).
-        _, _, depth_a, weight, _, d_bounds, a_bounds = _validate(
+        _, _, depth_a, weight, _, d_bounds, a_bounds, _ = _validate(
             rgb, rgb, depth, camera, mask, bounds, (), "lm", "l2", False, {}, {})
         u_bounds = (1.0 / d_bounds[1], 1.0 / d_bounds[0])
         window = min(_reach(depth_a[weight > 0], float(camera.pixel_scale), u_bounds, a_bounds[1]),
@@ -48,8 +48,13 @@ def _default_model(rgb, depth, camera, mask, bounds, window, max_window, defocus
 def _check_inputs(rgb, depth, camera, sigma, mask):
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a dofjax.Camera, got {type(camera).__name__}")
-    rgb_a, depth_a = _check_images(rgb, depth, camera)
+    rgb_a, depth_a, s = _check_images(rgb, depth, camera)
     hw = depth_a.shape
+    if s != 1:
+        raise ValueError(
+            f"camera: width x height {camera.width}x{camera.height} must equal the image's "
+            f"{hw[1]}x{hw[0]} (fisher_information takes no supersampled sharp input: pass "
+            f"camera.scaled({s}), or a model that box-averages)")
     sig = np.asarray(sigma, dtype=np.float64)
     if sig.shape not in ((), hw, hw + (3,)):
         raise ValueError(f"sigma: expected a scalar, {hw} or {hw + (3,)} noise standard "
@@ -57,7 +62,7 @@ def _check_inputs(rgb, depth, camera, sigma, mask):
     sig = np.broadcast_to(sig[..., None] if sig.shape == hw else sig, hw + (3,))
     if not np.all(np.isfinite(sig)) or not np.all(sig > 0):
         raise ValueError(f"sigma: must be finite and > 0 (image units), got min {sig.min()!r}")
-    return rgb_a, depth_a, sig, _depth_weight(depth_a, mask)
+    return rgb_a, depth_a, sig, _depth_weight(depth_a, mask, hw)
 
 
 @eqx.filter_jit

@@ -145,6 +145,9 @@ def test_bad_input():
         fisher_information(rgb.at[0, 0, 0].set(jnp.nan), depth, TRUE, 0.01, model=blend_model)
     with pytest.raises(ValueError, match="camera: width x height"):
         fisher_information(rgb[:20, :20], depth[:20, :20], TRUE, 0.01, model=blend_model)
+    with pytest.raises(ValueError, match="takes no supersampled sharp input"):
+        fisher_information(jnp.tile(rgb, (2, 2, 1)), jnp.tile(depth, (2, 2)), TRUE, 0.01,
+                           model=blend_model)
     with pytest.raises(ValueError, match="depth: must be > 0"):
         fisher_information(rgb, depth.at[3, 4].set(0.0), TRUE, 0.01, model=blend_model)
     with pytest.raises(ValueError, match="mask: expected shape"):
