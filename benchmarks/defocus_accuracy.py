@@ -223,8 +223,7 @@ def run_scene(path, args):
             g = int(math.ceil(args.max_coc)) + 2
             gcam = guarded(cam, g)
             gsharp = dofjax.render(scene, gcam, spp=sharp_spp, layers=args.layers)
-            crop = (slice(g, g + cam.height), slice(g, g + cam.width))
-            variants += guarded_variants(args.methods, args.layers, gsharp, gcam, crop,
+            variants += guarded_variants(args.methods, args.layers, gsharp, cam, g,
                                          "guard band")
             if args.supersample > 1:
                 # the same, the sharp input rendered s times finer (as many samples per frame
@@ -232,7 +231,7 @@ def run_scene(path, args):
                 sup = args.supersample
                 fsharp = dofjax.render(scene, gcam.scaled(sup),
                                        spp=max(sharp_spp // (sup * sup), 1), layers=args.layers)
-                variants += guarded_variants(args.methods, args.layers, fsharp, gcam, crop,
+                variants += guarded_variants(args.methods, args.layers, fsharp, cam, g,
                                              f"guard band, x{sup}")
         for label, v in variants:
             img = np.asarray(v["f"]())
@@ -250,17 +249,18 @@ def run_scene(path, args):
                 aperture=float(cam.aperture_radius))
 
 
-def guarded_variants(methods, layers, sharp, cam, crop, tag):
-    """(label, {f}) rows of every method on a guard-band render `sharp` (an RGBD for `cam`, or
-    finer: supersampled), single layer and layered, cropped back to the frame."""
+def guarded_variants(methods, layers, sharp, cam, margin, tag):
+    """(label, {f}) rows of every method on a guard-band render `sharp` (an RGBD for
+    `cam.padded(margin)`, or finer: supersampled), single layer and layered; `defocus(...,
+    margin=)` crops the result to `cam`'s frame."""
     out = []
     for method in methods:
         out.append((f"{method}, single layer, {tag}", dict(
-            f=lambda m=method: np.asarray(dofjax.defocus(
+            f=lambda m=method: dofjax.defocus(
                 sharp.rgb, sharp.depth, cam, reflection=sharp.reflection,
-                reflection_depth=sharp.reflection_depth, method=m))[crop])))
+                reflection_depth=sharp.reflection_depth, method=m, margin=margin))))
         out.append((f"{method}, {layers} layers, {tag}", dict(
-            f=lambda m=method: np.asarray(dofjax.defocus(sharp, cam, method=m))[crop])))
+            f=lambda m=method: dofjax.defocus(sharp, cam, method=m, margin=margin))))
     return out
 
 

@@ -170,8 +170,9 @@ class Camera(eqx.Module):
 
         Same pose, pixel scale, focus and aperture: pixel (i, j) of this camera is pixel
         (i + margin, j + margin) of the padded one (the field of view widens to keep the pixel
-        scale). Render the sharp input with it, defocus it with it and crop
-        `[margin:-margin, margin:-margin]`: the blur then gathers what lies just beyond the frame,
+        scale). Render the sharp input with it and defocus it with this camera and
+        `margin=margin` (`dofjax.defocus` crops the result to the frame): the blur then gathers
+        what lies just beyond the frame,
         as a lens does. A margin of the largest |CoC| + 2 px is enough (on the quads scene it
         moves the lens method's RMSE against the lens-sampling reference from 0.0088 to 0.0054;
         benchmarks/README.md).

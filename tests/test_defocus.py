@@ -337,3 +337,30 @@ def test_supersampled_input_is_defocused_on_its_grid_and_box_averaged(method):
     # sizes that are not a multiple of the camera's are still an error
     with pytest.raises(ValueError, match="nor an integer multiple"):
         defocus(rgb[:-1], depth[:-1], cam)
+
+
+def test_margin_crops_a_guard_band_render():
+    # the sharp input rendered `margin` px beyond the frame (Camera.padded): defocused with the
+    # padded camera and cropped to the frame; with supersampling too
+    n, m, s = 12, 3, 2
+    cam = camera(n, aperture=0.3)
+    rng = np.random.default_rng(10)
+    big = n + 2 * m
+    rgb = rng.random((big, big, 3))
+    depth = np.where(rng.random((big, big)) < 0.5, 1.5, 3.0)
+    full = np.asarray(defocus(rgb, depth, cam.padded(m), method="sliced", window=4))
+    out = np.asarray(defocus(rgb, depth, cam, method="sliced", window=4, margin=m))
+    assert out.shape == (n, n, 3)
+    np.testing.assert_allclose(out, full[m:-m, m:-m], atol=1e-12)
+    f = defocus_fn(rgb, depth, cam, window=4, method="sliced", margin=m)
+    np.testing.assert_allclose(np.asarray(f(FOCUS, 0.3)), out, atol=1e-12)
+    fine_rgb = np.repeat(np.repeat(rgb, s, 0), s, 1)
+    fine_depth = np.repeat(np.repeat(depth, s, 0), s, 1)
+    both = np.asarray(defocus(fine_rgb, fine_depth, cam, method="sliced", window=4, margin=m))
+    ref = np.asarray(defocus(fine_rgb, fine_depth, cam.padded(m), method="sliced", window=4))
+    np.testing.assert_allclose(both, ref[m:-m, m:-m], atol=1e-12)
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="margin must be an integer >= 0"):
+            defocus(rgb, depth, cam, margin=bad)
+    with pytest.raises(ValueError, match="camera is 14x14"):
+        defocus(rgb, depth, cam, margin=1)  # the render's margin is 3
