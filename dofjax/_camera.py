@@ -172,10 +172,9 @@ class Camera(eqx.Module):
         (i + margin, j + margin) of the padded one (the field of view widens to keep the pixel
         scale). Render the sharp input with it and defocus it with this camera and
         `margin=margin` (`dofjax.defocus` crops the result to the frame): the blur then gathers
-        what lies just beyond the frame,
-        as a lens does. A margin of the largest |CoC| + 2 px is enough (on the quads scene it
-        moves the lens method's RMSE against the lens-sampling reference from 0.0088 to 0.0054;
-        benchmarks/README.md).
+        what lies just beyond the frame, as a lens does. A margin of the largest |CoC| + 2 px is
+        enough (on the quads scene it moves the lens method's RMSE against the lens-sampling
+        reference from 0.0088 to 0.0054; benchmarks/README.md).
         """
         if isinstance(margin, bool) or not isinstance(margin, int | np.integer) or margin < 0:
             raise ValueError(f"Camera.padded: margin must be an integer >= 0 px, got {margin!r}")
