@@ -274,6 +274,9 @@ def test_supersampled_sharp_input():
     # the same target fitted from the sharp input at the target's resolution: a model mismatch
     coarse = fit_focus(target, rgb2.reshape(N, s, N, s, 3).mean((1, 3)), depth, CAM, **KW)
     assert abs(float(coarse.focus_distance) / 1.7 - 1) > 1e-4
+    # and in a batch (same shared sharp input)
+    batch = fit_focus_batch(jnp.stack([target, target]), rgb2, depth2, CAM, mask=mask, **KW)
+    assert float(batch[1].focus_distance) == pytest.approx(float(res.focus_distance), rel=1e-9)
 
 
 def test_fit_focus_scene_supersampled():
