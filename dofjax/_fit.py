@@ -197,7 +197,6 @@ class _Spec:
     screen_steps: int  # max steps per screening solve of every start on each finer level (0: none)
     scan_points: int  # full-resolution scan of u, forward passes only (0: none)
     robust_rounds: int
-    supersample: int = 1  # the sharp input's pixels per target pixel, per side
 
 
 class _Extras(eqx.Module):
@@ -375,8 +374,7 @@ def _predict(ul: Array, data: _Data, camera: Camera, model: Callable) -> Array:
     # (tracing + lowering of a 256x256 fit: 10.3 s with the misses, 7.7 s without).
     with plain_autodiff(), jax.sharding.use_abstract_mesh(jax.sharding.get_abstract_mesh()):
         pred = model(data.rgb, data.depth, cam, **extras)
-    s = pred.shape[0] // data.target.shape[0]
-    return _pool(pred, s, 0) if s > 1 else pred  # a supersampled sharp input (`Camera.scaled`)
+    return _pool(pred, _factor(data), 0)  # a supersampled sharp input (`Camera.scaled`)
 
 
 def _residual_ul(ul, data: _Data, camera: Camera, model: Callable, loss: str, delta) -> Array:
@@ -658,7 +656,7 @@ def _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_sc
               spec: _Spec):
     """Traceable body of one fit (vmapped over targets by fit_focus_batch).
 
-    `data` is what the polish fits with the camera `fine` (a sharp input `spec.supersample`
+    `data` is what the polish fits with the camera `fine` (a sharp input `_factor(data)`
     times finer than the target, the prediction box-averaged back); `search` the same with the
     sharp input at the target's resolution, for `camera` (the same as `data` when not
     supersampled). `levels` and `cameras` are the downsampled copies of `search` and `camera`
@@ -1032,9 +1030,16 @@ def _coarse_data(data: _Data, f: int) -> _Data:
                  weight=_pool(data.weight, f, 0), extras=extras)
 
 
-def _search_data(data: _Data, s: int) -> _Data:
+def _factor(data: _Data) -> int:
+    """The sharp input's pixels per target pixel, per side (> 1: supersampled, `Camera.scaled`);
+    static (from the shapes)."""
+    return data.rgb.shape[0] // data.target.shape[0]
+
+
+def _search_data(data: _Data) -> _Data:
     """A sharp input s times finer than the target (`Camera.scaled`) box-averaged to the
     target's resolution: what the multi-start, scan and screens fit (s = 1: `data` itself)."""
+    s = _factor(data)
     if s == 1:
         return data
     weight = jnp.repeat(jnp.repeat(data.weight, s, axis=0), s, axis=1)
@@ -1236,7 +1241,7 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         auto_scale=(loss != "l2" and loss_scale is None), free=free, rtol=float(rtol),
         atol=float(atol), max_steps=int(max_steps), factors=factors, robust_rounds=robust_rounds,
         start_steps=int(start_steps), screen_steps=int(screen_steps),
-        scan_points=int(scan_points), supersample=s)
+        scan_points=int(scan_points))
     data = _Data(target=jnp.asarray(tgt, dtype), rgb=jnp.asarray(rgb_a, dtype),
                  depth=jnp.asarray(depth_a, dtype), weight=jnp.asarray(weight, dtype),
                  extras=extras)
@@ -1246,7 +1251,7 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
 
 @eqx.filter_jit
 def _fit_jit(data, camera, fine, cameras, param, y_starts, u_scene, delta0, spec):
-    search = _search_data(data, spec.supersample)
+    search = _search_data(data)
     levels = tuple(_coarse_data(search, g) for g in spec.factors)
     return _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_scene,
                      delta0, spec)
@@ -1508,7 +1513,7 @@ def _batch_jit(targets, data, camera, fine, cameras, param, y_starts, u_scene, d
 
     def one(t):
         d = eqx.tree_at(lambda d: d.target, data, t)
-        search = _search_data(d, spec.supersample)
+        search = _search_data(d)
         levels = tuple(_coarse_data(search, g) for g in spec.factors)
         return _fit_core(d, search, levels, camera, fine, cameras, param, y_starts, u_scene,
                          delta0, spec)
