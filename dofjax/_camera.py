@@ -33,6 +33,13 @@ def _as_float(x) -> Array:
     return jnp.asarray(x, dtype=jnp.result_type(float))
 
 
+def check_margin(name: str, margin) -> int:
+    """A guard band's width in px (`Camera.padded`, `defocus(margin=)`): an integer >= 0."""
+    if isinstance(margin, bool) or not isinstance(margin, int | np.integer) or margin < 0:
+        raise ValueError(f"{name}: margin must be an integer >= 0 px, got {margin!r}")
+    return int(margin)
+
+
 _LEAVES = ("fov", "focus_distance", "aperture_radius", "eye", "target", "up")
 
 
@@ -176,9 +183,7 @@ class Camera(eqx.Module):
         enough (on the quads scene it moves the lens method's RMSE against the lens-sampling
         reference from 0.0088 to 0.0054; benchmarks/README.md).
         """
-        if isinstance(margin, bool) or not isinstance(margin, int | np.integer) or margin < 0:
-            raise ValueError(f"Camera.padded: margin must be an integer >= 0 px, got {margin!r}")
-        margin = int(margin)
+        margin = check_margin("Camera.padded", margin)
         if margin == 0:
             return self
         width = self.width + 2 * margin

@@ -60,7 +60,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ._autodiff import dense_jacobian
-from ._camera import Camera
+from ._camera import Camera, check_margin
 from ._hidden import hidden_layer
 from ._kernels import (
     MAX_WINDOW,
@@ -515,9 +515,8 @@ def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, meth
     if method not in METHODS:
         raise ValueError(f"{name}: method must be one of {METHODS}, got {method!r}")
     check_samples(name, samples, method)
-    if isinstance(margin, bool) or not isinstance(margin, int | np.integer) or margin < 0:
-        raise ValueError(f"{name}: margin must be an integer >= 0 px, got {margin!r}")
-    camera = camera.padded(int(margin)) if isinstance(camera, Camera) else camera
+    margin = check_margin(name, margin)
+    camera = camera.padded(margin) if isinstance(camera, Camera) else camera
     blades, rotation, ratio = _shape_config(shape, blades, rotation, ratio)
     rgb = _as_array(rgb)
     dtype = rgb.dtype
