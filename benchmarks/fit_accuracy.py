@@ -616,13 +616,9 @@ def reference(args) -> None:
     sup = args.ref_supersample
     if sup > 1 and args.ref_layers <= 0:
         raise SystemExit("--ref-supersample needs --ref-layers >= 1 (a render of the sharp input)")
-    # the fit's polish model (a supersampled sharp input: CoCs in its finer pixels, then pooled)
-    model = jax.jit(dofjax.DefocusModel(window=args.window * sup, method=args.ref_method,
-                                        samples=samples))
-
-    def forward(rgb, depth, cam, **extras):
-        out = np.asarray(model(rgb, depth, cam.scaled(sup), **extras))
-        return out.reshape(args.size, sup, args.size, sup, 3).mean((1, 3))
+    # the fit's polish model (`defocus` box-averages a supersampled sharp input itself)
+    forward = jax.jit(dofjax.DefocusModel(window=args.window, method=args.ref_method,
+                                          samples=samples))
 
     band = border_px(args)
     frame_mask = border_mask((args.size, args.size), band)
