@@ -77,6 +77,8 @@ def main(argv=None) -> None:
         p.error("--layers and --supersample are for --scene (a sharp EXR brings its own)")
     if a.supersample < 1:
         p.error(f"--supersample must be >= 1, got {a.supersample}")
+    if a.layers is not None and a.layers < 1:
+        p.error(f"--layers must be >= 1, got {a.layers}")
 
     target, _, tmeta = dofjax.read_exr(a.target)
     if a.sharp:
@@ -106,7 +108,7 @@ def main(argv=None) -> None:
         bounds["focus_distance"] = tuple(a.focus_bounds)
     if a.aperture_bounds:
         bounds["aperture_radius"] = tuple(a.aperture_bounds)
-    options = {"method": a.method} | ({"samples": a.samples} if a.samples else {})
+    options = {"method": a.method} | ({"samples": a.samples} if a.samples is not None else {})
     try:
         result = dofjax.fit_focus(target, sharp, camera, bounds=bounds or None, solver=a.solver,
                                   loss=a.loss, starts=a.starts, window=a.window,

@@ -44,9 +44,13 @@ def test_recover_rejects_options_that_do_not_apply(tmp_path, capsys):
     dofjax.write_exr(path, np.zeros((4, 4, 3), np.float32))
     for argv, msg in ((["--samples", "64"], "--samples is for --method lens only"),
                       (["--sharp", path, "--supersample", "2"], "are for --scene"),
-                      (["--supersample", "0"], "--supersample must be >= 1")):
+                      (["--supersample", "0"], "--supersample must be >= 1"),
+                      (["--layers", "0"], "--layers must be >= 1")):
         if "--sharp" not in argv:
             argv = ["--scene", SCENE] + argv
         with pytest.raises(SystemExit):
             recover.main([path] + argv)
         assert msg in capsys.readouterr().err
+    # a value only the library can judge: its named error, not a silent default
+    with pytest.raises(SystemExit, match="samples must be a positive int, got 0"):
+        recover.main([path, "--scene", SCENE, "--method", "lens", "--samples", "0"])
