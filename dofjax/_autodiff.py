@@ -9,11 +9,12 @@ import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
-def dense_jacobian(fn, y, args):
+def dense_jacobian(fn, y, args, jac_fn=None):
     """fn(y, args), differentiated w.r.t. the 1-D array y through its Jacobian, built by one
-    forward-mode pass with len(y) tangents. Derivatives w.r.t. `args` (e.g. the input colours)
-    are exact too, by plain autodiff of fn (without the shortcut).
+    forward-mode pass with len(y) tangents (or by `jac_fn(y, args) -> (fn(y, args), J)`, J of
+    shape out.shape + y.shape, where the model has a cheaper one of its own). Derivatives w.r.t.
+    `args` (e.g. the input colours) are exact too, by plain autodiff of fn (without the
+    shortcut).
 
     For a model with one or two parameters (focus, aperture) the linearisation becomes the
     product `J @ dy`:
@@ -24,6 +25,17 @@ def dense_jacobian(fn, y, args):
       `jax.jacfwd`, and transposing the shifted-sum blurs (pads, ~9x their forward cost on the
       CPU) is never needed.
     """
+    return _dense_jacobian(fn, jac_fn or functools.partial(_jacfwd, fn), y, args)
+
+
+def _jacfwd(fn, y, args):
+    """(fn(y, args), d fn / d y) by one `jax.jacfwd`."""
+    jac, out = jax.jacfwd(lambda y_: (fn(y_, args),) * 2, has_aux=True)(y)
+    return out, jac
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1))
+def _dense_jacobian(fn, jac_fn, y, args):
     return fn(y, args)
 
 
@@ -31,11 +43,11 @@ def _is_zero(t) -> bool:
     return isinstance(t, SymbolicZero)
 
 
-@functools.partial(dense_jacobian.defjvp, symbolic_zeros=True)
-def _dense_jacobian_jvp(fn, primals, tangents):
+@functools.partial(_dense_jacobian.defjvp, symbolic_zeros=True)
+def _dense_jacobian_jvp(fn, jac_fn, primals, tangents):
     y, args = primals
     dy, dargs = tangents
-    jac, out = jax.jacfwd(lambda y_: (fn(y_, args),) * 2, has_aux=True)(y)
+    out, jac = jac_fn(y, args)
     return out, _tangent(fn, y, args, dy, dargs, out, jac)
 
 
@@ -66,8 +78,7 @@ def value_and_jacobian(fn, y, args):
     output of a least-squares residual it comes back with the solution, so a covariance at the
     optimum needs no further pass through fn (and no further copy of fn in the program).
     """
-    jac, out = jax.jacfwd(lambda y_: (fn(y_, args),) * 2, has_aux=True)(y)
-    return out, jac
+    return _jacfwd(fn, y, args)
 
 
 @functools.partial(value_and_jacobian.defjvp, symbolic_zeros=True)

@@ -77,7 +77,7 @@ from ._lens import LENS_SAMPLES, lens_defocus
 from ._lens import levels as lens_levels
 from ._numerics import box_pool, inverse_depth
 from ._rgbd import RGBD, Layers
-from ._sliced import sliced_defocus
+from ._sliced import sliced_defocus, sliced_defocus_jacobian
 
 METHODS = ("pyramid", "sliced", "lens")
 
@@ -460,7 +460,17 @@ def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blade
         # add a whole second forward-mode pass for a zero contribution)
         rest = camera.replace(focus_distance=jax.lax.stop_gradient(camera.focus_distance),
                               aperture_radius=jax.lax.stop_gradient(camera.aperture_radius))
-        out = dense_jacobian(core, y, (rgb, depth, rest, reflection, reflection_depth, layers))
+
+        def jacobian(y, a):  # the image and J, its tangents written out (`_sliced`)
+            rgb, depth, camera, reflection, reflection_depth, layers = a
+            cam = camera.replace(focus_distance=y[0], aperture_radius=y[1])
+            return sliced_defocus_jacobian(rgb, depth, cam, window=window, blades=blades,
+                                           rotation=rotation, ratio=ratio,
+                                           reflection=reflection,
+                                           reflection_depth=reflection_depth, layers=layers)
+
+        out = dense_jacobian(core, y, (rgb, depth, rest, reflection, reflection_depth, layers),
+                             jacobian)
         return out, None
     dtype = rgb.dtype
     src_rgb, src_inv, src_a = _sources(rgb, depth, reflection, layers, dtype)

@@ -54,7 +54,7 @@ import numpy as np
 from ._camera import Camera, coc_radius
 from ._hidden import hidden_layer
 from ._kernels import MAGNITUDES, R0, bucket_window, soft_kernel
-from ._numerics import safe_div
+from ._numerics import safe_div, safe_sqrt
 
 # Smallest kernel radius (px, at the reduced resolution) of a level: a level of magnitude m is
 # blurred at 1/s of the resolution, s the largest power of two with m / s >= MIN_LOW_RADIUS.
@@ -169,9 +169,10 @@ def _runs(levels, factors, kernels):
 def _downsample(x, s: int):
     """Box average over s x s blocks of the last two axes (sizes are multiples of s), as a sum of
     s^2 strided views (one fused pass; a reshape-mean is ~10x slower on the CPU)."""
-    if s == 1:
-        return x
-    return sum(x[..., i::s, j::s] for i in range(s) for j in range(s)) / (s * s)
+    while s > 1:  # by halvings: a producer fused into 4 strided reads, not s^2
+        x = (x[..., 0::2, 0::2] + x[..., 0::2, 1::2] + x[..., 1::2, 0::2] + x[..., 1::2, 1::2]) / 4
+        s //= 2
+    return x
 
 
 def _upsample(x, s: int):
@@ -266,9 +267,13 @@ def _level_weights(q, q_lv, p_first: bool, p_last: bool):
 def _level_index(c, levels):
     """Fractional index of signed CoCs c among the front-to-back `levels` (linear in
     q = sign(c) c^2 between two levels, like the slice weights; clamped to the window)."""
+    return _level_index_q(jnp.sign(c) * c * c, levels)
+
+
+def _level_index_q(q, levels):
+    """`_level_index` of sources given by q = sign(c) c^2."""
     q_lv = np.sign(levels) * levels * levels
-    return jnp.interp(-jnp.sign(c) * c * c, jnp.asarray(-q_lv, c.dtype),
-                      jnp.arange(len(levels), dtype=c.dtype))
+    return jnp.interp(-q, jnp.asarray(-q_lv, q.dtype), jnp.arange(len(levels), dtype=q.dtype))
 
 
 def surface_sources(rgb, depth, reflection, layers, camera, levels):
@@ -312,6 +317,30 @@ def _sources(rgb, depth, layers, camera, levels, reflection=None, hidden=False):
     return out
 
 
+def _level_slopes(front_w, back_w, q_lv):
+    """d/dq of `_level_weights`' (front, back) weights (given them): the hats' constant slopes
+    where a weight is strictly inside its ramp, 0 elsewhere (also on the outermost levels' flat
+    outer sides, where the weight is exactly 1)."""
+    q_prev, q_p, q_next = q_lv
+    front = jnp.where((front_w > 0.0) & (front_w < 1.0), -1.0 / (q_prev - q_p), 0.0)
+    back = jnp.where((back_w > 0.0) & (back_w < 1.0), 1.0 / (q_p - q_next), 0.0)
+    return front, back
+
+
+def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_depth, hidden):
+    """The sources stacked: colours (S, 3, H, W), q = sign(c) c^2 (S, H, W), coverage
+    (S, H, W) and the mirror's q (H, W) or None."""
+    srcs = _sources(rgb, depth, layers, camera, levels, reflection, hidden)
+    colour = jnp.stack([jnp.moveaxis(s[0], -1, 0) for s in srcs])
+    c = jnp.stack([s[1] for s in srcs])
+    alpha = jnp.stack([s[2] for s in srcs])
+    q_r = None
+    if reflection is not None:
+        c_r = coc_radius(reflection_depth, camera).astype(rgb.dtype)
+        q_r = jnp.sign(c_r) * c_r * c_r
+    return colour, jnp.sign(c) * c * c, alpha, q_r
+
+
 @functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio", "hidden",
                                              "min_radius"))
 def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rotation=0.0,
@@ -326,11 +355,74 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     coarse-grid kernel radius (px) a level is blurred with (`MIN_LOW_RADIUS`; larger is slower
     and closer to the exact full-resolution disc, inf blurs every level at full resolution).
     """
-    height, width = depth.shape
+    levels = _levels(float(window))
+    colour, q, alpha, q_r = _source_fields(rgb, depth, layers, camera, levels, reflection,
+                                           reflection_depth, hidden)
+    out, _ = _composite(colour, q, alpha, reflection, q_r, None, window=float(window),
+                        blades=blades, rotation=float(rotation), ratio=float(ratio),
+                        min_radius=float(min_radius))
+    return out
+
+
+@functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio",
+                                             "min_radius"))
+def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades=None,
+                            rotation=0.0, ratio=1.0, reflection=None, reflection_depth=None,
+                            layers=None, min_radius: float = MIN_LOW_RADIUS):
+    """`sliced_defocus` and its Jacobian w.r.t. (focus_distance, aperture_radius): (out (H, W, 3),
+    J (H, W, 3, 2)), in one pass that carries both tangents beside the image.
+
+    Forward mode written out rather than left to `jax.jacfwd` (which took ~4.4x a forward pass
+    at 512 x 512, this ~3.3x): the slice weights' derivatives are the hats' constant slopes
+    (`_level_slopes`, from the weights themselves) times each source's dq, which is a function
+    of q (no tangent images are built or read), and the tangents run as separate arrays
+    through the same blurs and compositing (a batched tangent axis compiles to slower fusions
+    on the CPU). Only the peeled layers' gates are differentiated by `jax.jvp`.
+    Same arguments as `sliced_defocus` (no `hidden`: its colours depend on the camera).
+    """
+    levels = _levels(float(window))
     dtype = rgb.dtype
-    levels, factors, kernels = _plan(float(window), blades, float(rotation), float(ratio),
-                                     float(min_radius))
-    srcs = _sources(rgb, depth, layers, camera, levels, reflection, hidden)
+    colour, q, alpha, q_r = _source_fields(rgb, depth, layers, camera, levels, reflection,
+                                           reflection_depth, False)
+    # c = A k (1/z - 1/d): a change of A scales every source's c (dc = c dA / A), one of d
+    # shifts them all alike (dc = A k dd / d^2). So the passes carry two directions whose dq =
+    # 2 |c| dc are functions of q itself (no tangent images to read): "scale" (dc = c, dq = 2 q)
+    # and "shift" (dc = 1 px, dq = 2 |c|); J follows by the chain rule below.
+    directions = (lambda q: 2.0 * q, lambda q: 2.0 * safe_sqrt(jnp.abs(q)))
+    d_alpha = [None, None]
+    if layers is not None:  # a peeled layer's gate depends on its and the visible surface's c
+        raw = alpha.at[1:].set(jnp.asarray(layers.alpha[1:], dtype))
+
+        def gate(q):
+            i = _level_index_q(q, levels)
+            return raw.at[1:].multiply(jnp.clip(i[1:] - i[0] - 1.5, 0.0, 1.0))
+
+        d_alpha = [jax.jvp(gate, (q,), (dq(q),))[1] for dq in directions]
+    out, (d_scale, d_shift) = _composite(
+        colour, q, alpha, reflection, q_r, list(zip(directions, d_alpha)), window=float(window),
+        blades=blades, rotation=float(rotation), ratio=float(ratio), min_radius=float(min_radius))
+    a, d = jnp.asarray(camera.aperture_radius, dtype), jnp.asarray(camera.focus_distance, dtype)
+    # d out / dA = scale / A (0 at A = 0, where dq / dA = 2 A e|e| vanishes with q = A^2 e|e|)
+    jac_a = safe_div(d_scale, a)
+    jac_d = d_shift * (a * jnp.asarray(camera.pixel_scale, dtype) / (d * d))
+    return out, jnp.stack([jac_d, jac_a], axis=-1)
+
+
+def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, rotation, ratio,
+               min_radius):
+    """The slices of the sources (`_source_fields`), blurred and composited (module docstring).
+
+    `tangents`: None, or one (dq, d alpha or None) per direction, dq a function giving each
+    source's (and the mirror's) tangent of q from q: then the directional derivatives of the
+    image come out too ((out, [d out, ...]); else (out, [])).
+    Every quantity is carried as lanes (value, then one tangent per direction): linear steps
+    (resampling, blurs) act on each lane alike, products get the product rule.
+    """
+    _, _, height, width = colour.shape
+    dtype = colour.dtype
+    levels, factors, kernels = _plan(window, blades, rotation, ratio, min_radius)
+    tangents = tangents or []
+    n_lanes = 1 + len(tangents)
     mirror = reflection is not None
     s_max = max(factors)
     # pad to a multiple of the coarsest divisor (no sources there; cropped at the end)
@@ -345,26 +437,27 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     border_px = max(factors[ps[0]] * b for ps, b in zip(runs, borders))
 
     def pad(x):
+        if x is None:
+            return None
         b = border_px
         return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((b, hp - height + b), (b, wp - width + b)))
 
-    colour = pad(jnp.stack([jnp.moveaxis(s[0], -1, 0) for s in srcs]))  # (S, 3, hp, wp)
-    c = pad(jnp.stack([s[1] for s in srcs]))
-    q = jnp.sign(c) * c * c
-    alpha = pad(jnp.stack([s[2] for s in srcs]))
+    colour, q, alpha = pad(colour), pad(q), pad(alpha)
+    d_q = [t[0] for t in tangents]
+    d_alpha = [pad(t[1]) for t in tangents]
     if mirror:
         # the mirror's reflected radiance: blurred at its virtual depth and added on top, seen
         # through the mirror (the mirror surface, a source above, must not occlude it; like the
         # pyramid method, nearer surfaces do not occlude it either)
         refl = pad(jnp.moveaxis(reflection, -1, 0))
-        c_r = pad(coc_radius(reflection_depth, camera).astype(dtype))
-        q_r = jnp.sign(c_r) * c_r * c_r
+        q_r = pad(q_r)
     nc = 6 if mirror else 3  # accumulated colour channels: surfaces (+ reflection)
     q_lv = np.sign(levels) * levels * levels
     n = len(levels)
 
     def run(state, i_run):
-        """Composite the levels of run `i_run` (one resolution) front to back onto `state`."""
+        """Composite the levels of run `i_run` (one resolution) front to back onto `state`
+        (one (acc_rgb, acc_cov, occluders, prev_cov, prev_occ) per lane)."""
         ps, size, border = runs[i_run], sizes[i_run], borders[i_run]
         s = factors[ps[0]]
         h, w = hp // s, wp // s
@@ -378,107 +471,175 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
                 ks[i, o: size - o, o: size - o] = kernels[p]
             ks = (jnp.asarray(ks, dtype),
                   jnp.asarray([k_sizes.index(kernels[p].shape[0]) for p in ps], jnp.int32))
+            # the compositing runs inside each branch, so the blurred fields fuse into it
             branches = [functools.partial(
-                lambda fs, k, o: _blur(fs, k[o: size - o, o: size - o], border),
+                lambda st, fs, k, o: composite(st, _blur(fs, k[o: size - o, o: size - o], border)),
                 o=(size - k_size) // 2) for k_size in k_sizes]
 
-            def blur(fs, k):
+            def blur_composite(st, fs, k):
                 k, which = k
                 if len(branches) == 1:
-                    return branches[0](fs, k)
-                return jax.lax.switch(which, branches, fs, k)
+                    return branches[0](st, fs, k)
+                return jax.lax.switch(which, branches, st, fs, k)
         else:
             ks, r, grid = _spectra([kernels[p] for p in ps], h, w, dtype)
             ks = jnp.asarray(ks)
 
-            def blur(fs, k):
-                return [_blur_fft(f, k, r, grid) for f in fs]
+            def blur_composite(st, fs, k):
+                return composite(st, [_blur_fft(f, k, r, grid) for f in fs])
 
         # the sources with this run's border (a static slice of the padded ones)
         def padded(x):
+            if x is None:
+                return None
             o = border_px - s * border
             return x[..., o: x.shape[-2] - o, o: x.shape[-1] - o]
 
         colour_p, q_p, alpha_p = padded(colour), padded(q), padded(alpha)
+        d_alpha_p = [padded(x) for x in d_alpha]
         if mirror:
             refl_p, q_r_p = padded(refl), padded(q_r)
         q3 = np.array([(q_lv[max(p - 1, 0)] + (p == 0), q_lv[p],
                         q_lv[min(p + 1, n - 1)] - (p == n - 1)) for p in ps])
         xs = (jnp.asarray(q3, dtype), jnp.asarray([p == 0 for p in ps]),
               jnp.asarray([p == n - 1 for p in ps]), ks)
+        each = range(colour.shape[0])
+
+        def slice_parts(weight, occ):
+            # the channels are built and blurred as separate arrays, the sums over the few
+            # sources written out: a concatenated (5, H, W) slice compiled on XLA CPU to a
+            # fusion 4-5x slower than the same arithmetic per channel (and the fused
+            # broadcast-multiply-reduce over the source axis once came out with blue = red)
+            return [sum(weight[k] * colour_p[k] for k in each), sum(weight[k] for k in each),
+                    sum(occ[k] for k in each)]
 
         def body(state, x):
-            acc_rgb, acc_cov, occluders, prev_cov, prev_occ = state
             q3, first, last, kernel = x
-            front_w, back_w = _level_weights(q_p, (q3[0], q3[1], q3[2]), first, last)
+            q3 = (q3[0], q3[1], q3[2])
+            front_w, back_w = _level_weights(q_p, q3, first, last)
             front, back = front_w * alpha_p, back_w * alpha_p
             # what this slice hides of the next one: its sources in front of the level fully,
             # those a fraction t of the way to the next level by (1 - t) (= back_w), so a source
             # crossing a level never switches its occlusion on or off (the loss stays continuous
             # in focus and aperture)
             occ = front + back * back_w
-            # the channels are built and blurred as separate arrays, the sums over the few
-            # sources written out: a concatenated (5, H, W) slice compiled on XLA CPU to a
-            # fusion 4-5x slower than the same arithmetic per channel (and the fused
-            # broadcast-multiply-reduce over the source axis once came out with blue = red)
-            weight = front + back
-            each = range(weight.shape[0])
-            parts = [sum(weight[k] * colour_p[k] for k in each),
-                     sum(weight[k] for k in each), sum(occ[k] for k in each)]
+            lanes = [slice_parts(front + back, occ)]
             if mirror:
-                parts.append(sum(_level_weights(q_r_p, (q3[0], q3[1], q3[2]), first, last))
-                             * refl_p)
-            blurred = blur([_downsample(x, s) for x in parts], kernel)
-            rgb_b, cov_b, occ_b = blurred[:3]
-            transmit = jnp.clip(1.0 - occluders - prev_occ, 0.0, 1.0)
+                lanes[0].append(sum(_level_weights(q_r_p, q3, first, last)) * refl_p)
+            if tangents:
+                front_s, back_s = _level_slopes(front_w, back_w, q3)
+                if mirror:
+                    mirror_s = sum(_level_slopes(*_level_weights(q_r_p, q3, first, last), q3))
+            for i in range(len(tangents)):  # the product rule through the weights
+                dq = d_q[i](q_p)
+                d_front, d_back = front_s * dq, back_s * dq
+                if d_alpha_p[i] is None:  # one opaque source (dq is 0 where alpha is)
+                    d_occ = d_front + 2.0 * back_w * d_back
+                else:
+                    d_occ = (d_front * alpha_p + front_w * d_alpha_p[i]
+                             + back_w * (2.0 * d_back * alpha_p + back_w * d_alpha_p[i]))
+                    d_front = d_front * alpha_p + front_w * d_alpha_p[i]
+                    d_back = d_back * alpha_p + back_w * d_alpha_p[i]
+                lanes.append(slice_parts(d_front + d_back, d_occ))
+                if mirror:
+                    lanes[-1].append(mirror_s * d_q[i](q_r_p) * refl_p)
+            fields = [_downsample(x, s) for parts in lanes for x in parts]
+            return blur_composite(state, fields, kernel), None
+
+        def composite(state, blurred):
+            """The blurred slice (a list of fields, `len(blurred) // n_lanes` per lane) seen
+            through the slices in front of it and added to each lane of `state`."""
+            k = len(blurred) // n_lanes
+            blurred = [blurred[i * k: (i + 1) * k] for i in range(n_lanes)]
+            acc_rgb, acc_cov, occluders, prev_cov, prev_occ = state[0]
+            rgb_b, cov_b, occ_b = blurred[0][:3]
+            seen = 1.0 - occluders - prev_occ
+            transmit = jnp.clip(seen, 0.0, 1.0)
             colour_b = transmit * rgb_b
             if mirror:
-                colour_b = jnp.concatenate([colour_b, blurred[3]])
-            return (acc_rgb + colour_b, acc_cov + transmit * cov_b,
-                    occluders + prev_cov, cov_b, occ_b), None
+                colour_b = jnp.concatenate([colour_b, blurred[0][3]])
+            out = [(acc_rgb + colour_b, acc_cov + transmit * cov_b, occluders + prev_cov, cov_b,
+                    occ_b)]
+            if tangents:
+                inside = (seen > 0.0) & (seen < 1.0)
+            for (d_rgb, d_cov, d_occl, d_prev_cov, d_prev_occ), (d_rgb_b, d_cov_b, d_occ_b, *d_m) \
+                    in zip(state[1:], blurred[1:]):
+                d_transmit = jnp.where(inside, -(d_occl + d_prev_occ), 0.0)
+                d_colour_b = d_transmit * rgb_b + transmit * d_rgb_b
+                if mirror:
+                    d_colour_b = jnp.concatenate([d_colour_b, d_m[0]])
+                out.append((d_rgb + d_colour_b, d_cov + d_transmit * cov_b + transmit * d_cov_b,
+                            d_occl + d_prev_cov, d_cov_b, d_occ_b))
+            return tuple(out)
 
         return jax.lax.scan(body, state, xs)[0]
 
     def zeros(s):
         z = jnp.zeros((hp // s, wp // s), dtype)
-        return jnp.zeros((nc,) + z.shape, dtype), z, z, z, z
+        return (jnp.zeros((nc,) + z.shape, dtype), z, z, z, z)
+
+    def upsample(lane, r):
+        up = _upsample(jnp.concatenate([lane[0], jnp.stack(lane[1:])]), r)
+        return (up[:nc],) + tuple(up[nc:])
 
     s_min = min(factors)
     last_fine = max(i for i, ps in enumerate(runs) if factors[ps[0]] == s_min)
     # Near side and the finest runs: the state (accumulated colour and coverage, occluders) is
     # carried to each finer run by one upsampling of its 7 channels.
-    s_cur, state = factors[runs[0][0]], zeros(factors[runs[0][0]])
+    s_cur = factors[runs[0][0]]
+    state = (zeros(s_cur),) * n_lanes
     for i_run in range(last_fine + 1):
         s = factors[runs[i_run][0]]
         if s != s_cur:
-            up = _upsample(jnp.concatenate([state[0], jnp.stack(state[1:])]), s_cur // s)
-            state, s_cur = (up[:nc],) + tuple(up[nc:]), s
+            state, s_cur = tuple(upsample(lane, s_cur // s) for lane in state), s
         state = run(state, i_run)
-    acc_rgb, acc_cov, occluders, prev_cov, prev_occ = state
 
     # Far side: seen through the finest runs' (sharp) transmittance, applied at full resolution;
     # the far runs occlude each other at their own, coarser resolutions.
     if last_fine + 1 < len(runs):
-        transmit = jnp.clip(1.0 - occluders - prev_occ, 0.0, 1.0)
-        z = jnp.zeros_like(prev_occ)
+        occluders, prev_occ = state[0][2], state[0][4]
+        seen = 1.0 - occluders - prev_occ
+        transmit = jnp.clip(seen, 0.0, 1.0)
+        inside = (seen > 0.0) & (seen < 1.0)
         # the part of the last fine slice that the first far slice sees (not in `transmit`)
         # still hides the far slices behind it
-        state = (None, None, z, prev_cov - prev_occ, z)
+        fars = tuple((None, None, jnp.zeros_like(lane[4]), lane[3] - lane[4],
+                      jnp.zeros_like(lane[4])) for lane in state)
         far = []
         for i_run in range(last_fine + 1, len(runs)):
             s = factors[runs[i_run][0]]
-            state = zeros(s)[:2] + tuple(_downsample(x, s // s_cur) for x in state[2:])
-            state = run(state, i_run)
-            far.append((s, jnp.concatenate([state[0], state[1][None]])))
+            fars = tuple(zeros(s)[:2] + tuple(_downsample(x, s // s_cur) for x in lane[2:])
+                         for lane in fars)
+            fars = run(fars, i_run)
+            far.append((s, [jnp.concatenate([lane[0], lane[1][None]]) for lane in fars]))
             s_cur = s
         s_back, back = far[-1]
         for s, a in far[-2::-1]:  # coarsest to finest, then to full resolution
-            back, s_back = a + _upsample(back, s_back // s), s
-        back = _upsample(back, s_back // s_min)
+            back = [x + _upsample(b, s_back // s) for x, b in zip(a, back)]
+            s_back = s
+        back = [_upsample(b, s_back // s_min) for b in back]
         # the far surfaces are seen through the fine runs; the reflection (channels 3:6) is not
-        acc_rgb = acc_rgb + jnp.concatenate([transmit * back[:3], back[3:nc]])
-        acc_cov = acc_cov + transmit * back[nc]
-    out = safe_div(acc_rgb[:3, :height, :width], jnp.minimum(acc_cov[:height, :width], 1.0))
+        d_transmit = [jnp.where(inside, -(lane[2] + lane[4]), 0.0) for lane in state[1:]]
+        new = []
+        for i, (lane, b) in enumerate(zip(state, back)):
+            if i == 0:
+                seen_rgb, seen_cov = transmit * b[:3], transmit * b[nc]
+            else:
+                dt = d_transmit[i - 1]
+                seen_rgb = dt * back[0][:3] + transmit * b[:3]
+                seen_cov = dt * back[0][nc] + transmit * b[nc]
+            new.append((lane[0] + jnp.concatenate([seen_rgb, b[3:nc]]), lane[1] + seen_cov))
+        state = new
+    acc_rgb, acc_cov = state[0][0], state[0][1]
+    den = jnp.minimum(acc_cov[:height, :width], 1.0)
+    out = safe_div(acc_rgb[:3, :height, :width], den)
+    douts = []
+    for d_rgb, d_cov, *_ in state[1:]:
+        d_den = jnp.where(acc_cov[:height, :width] < 1.0, d_cov[:height, :width], 0.0)
+        d_out = safe_div(d_rgb[:3, :height, :width] - out * d_den, den)
+        if mirror:
+            d_out = d_out + d_rgb[3:6, :height, :width]
+        douts.append(jnp.moveaxis(d_out, 0, -1))
     if mirror:
         out = out + acc_rgb[3:6, :height, :width]
-    return jnp.moveaxis(out, 0, -1)
+    return jnp.moveaxis(out, 0, -1), douts
