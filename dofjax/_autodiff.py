@@ -11,8 +11,9 @@ from jax.custom_derivatives import SymbolicZero
 
 def dense_jacobian(fn, y, args, jac_fn=None):
     """fn(y, args), differentiated w.r.t. the 1-D array y through its Jacobian, built by one
-    forward-mode pass with len(y) tangents (or by `jac_fn(y, args) -> (fn(y, args), J)`, J of
-    shape out.shape + y.shape, where the model has a cheaper one of its own). Derivatives w.r.t.
+    forward-mode pass with len(y) tangents (or by `jac_fn(y, args) -> (fn(y, args), J)`, where
+    the model has a cheaper one of its own; J of shape out.shape + y.shape, or a tuple of len(y)
+    arrays shaped like out). Derivatives w.r.t.
     `args` (e.g. the input colours) are exact too, by plain autodiff of fn (without the
     shortcut).
 
@@ -55,8 +56,12 @@ def _tangent(fn, y, args, dy, dargs, out, jac):
     """fn's tangent: `jac @ dy`, plus plain forward mode through fn for the args' tangents
     (skipped when they are all symbolic zeros); in the output's dtype (a float32 image of
     float64 parameters has float32 tangents)."""
-    dout = (jnp.zeros_like(out) if _is_zero(dy)
-            else jnp.tensordot(jac, dy, axes=1).astype(out.dtype))
+    if _is_zero(dy):
+        dout = jnp.zeros_like(out)
+    elif isinstance(jac, tuple):  # one array per parameter
+        dout = sum(j * dy[i] for i, j in enumerate(jac)).astype(out.dtype)
+    else:
+        dout = jnp.tensordot(jac, dy, axes=1).astype(out.dtype)
     if all(_is_zero(t) for t in jax.tree_util.tree_leaves(dargs, is_leaf=_is_zero)):
         return dout
     dargs = jax.tree_util.tree_map(

@@ -369,8 +369,9 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
 def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades=None,
                             rotation=0.0, ratio=1.0, reflection=None, reflection_depth=None,
                             layers=None, min_radius: float = MIN_LOW_RADIUS):
-    """`sliced_defocus` and its Jacobian w.r.t. (focus_distance, aperture_radius): (out (H, W, 3),
-    J (H, W, 3, 2)), in one pass that carries both tangents beside the image.
+    """`sliced_defocus` and its derivatives w.r.t. focus_distance and aperture_radius:
+    (out, (d out / d focus, d out / d aperture)), three (H, W, 3) images from one pass that
+    carries both tangents beside the image.
 
     Forward mode written out rather than left to `jax.jacfwd` (which took ~4.4x a forward pass
     at 512 x 512, this ~3.3x): the slice weights' derivatives are the hats' constant slopes
@@ -405,7 +406,7 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     # d out / dA = scale / A (0 at A = 0, where dq / dA = 2 A e|e| vanishes with q = A^2 e|e|)
     jac_a = safe_div(d_scale, a)
     jac_d = d_shift * (a * jnp.asarray(camera.pixel_scale, dtype) / (d * d))
-    return out, jnp.stack([jac_d, jac_a], axis=-1)
+    return out, (jac_d, jac_a)
 
 
 def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, rotation, ratio,
@@ -457,7 +458,9 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
 
     def run(state, i_run):
         """Composite the levels of run `i_run` (one resolution) front to back onto `state`
-        (one (acc_rgb, acc_cov, occluders, prev_cov, prev_occ) per lane)."""
+        (one (acc_rgb, acc_cov, hiding, hiding_next) per lane: what hides this slice (the
+        coverage of every slice before the previous one, plus the previous one's occluders)
+        and what will hide the next one (every slice's coverage so far))."""
         ps, size, border = runs[i_run], sizes[i_run], borders[i_run]
         s = factors[ps[0]]
         h, w = hp // s, wp // s
@@ -551,32 +554,32 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
             through the slices in front of it and added to each lane of `state`."""
             k = len(blurred) // n_lanes
             blurred = [blurred[i * k: (i + 1) * k] for i in range(n_lanes)]
-            acc_rgb, acc_cov, occluders, prev_cov, prev_occ = state[0]
+            acc_rgb, acc_cov, hiding, hiding_next = state[0]
             rgb_b, cov_b, occ_b = blurred[0][:3]
-            seen = 1.0 - occluders - prev_occ
+            seen = 1.0 - hiding
             transmit = jnp.clip(seen, 0.0, 1.0)
             colour_b = transmit * rgb_b
             if mirror:
                 colour_b = jnp.concatenate([colour_b, blurred[0][3]])
-            out = [(acc_rgb + colour_b, acc_cov + transmit * cov_b, occluders + prev_cov, cov_b,
-                    occ_b)]
+            out = [(acc_rgb + colour_b, acc_cov + transmit * cov_b, hiding_next + occ_b,
+                    hiding_next + cov_b)]
             if tangents:
                 inside = (seen > 0.0) & (seen < 1.0)
-            for (d_rgb, d_cov, d_occl, d_prev_cov, d_prev_occ), (d_rgb_b, d_cov_b, d_occ_b, *d_m) \
+            for (d_rgb, d_cov, d_hiding, d_next), (d_rgb_b, d_cov_b, d_occ_b, *d_m) \
                     in zip(state[1:], blurred[1:]):
-                d_transmit = jnp.where(inside, -(d_occl + d_prev_occ), 0.0)
+                d_transmit = jnp.where(inside, -d_hiding, 0.0)
                 d_colour_b = d_transmit * rgb_b + transmit * d_rgb_b
                 if mirror:
                     d_colour_b = jnp.concatenate([d_colour_b, d_m[0]])
                 out.append((d_rgb + d_colour_b, d_cov + d_transmit * cov_b + transmit * d_cov_b,
-                            d_occl + d_prev_cov, d_cov_b, d_occ_b))
+                            d_next + d_occ_b, d_next + d_cov_b))
             return tuple(out)
 
         return jax.lax.scan(body, state, xs)[0]
 
     def zeros(s):
         z = jnp.zeros((hp // s, wp // s), dtype)
-        return (jnp.zeros((nc,) + z.shape, dtype), z, z, z, z)
+        return (jnp.zeros((nc,) + z.shape, dtype), z, z, z)
 
     def upsample(lane, r):
         up = _upsample(jnp.concatenate([lane[0], jnp.stack(lane[1:])]), r)
@@ -585,7 +588,7 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
     s_min = min(factors)
     last_fine = max(i for i, ps in enumerate(runs) if factors[ps[0]] == s_min)
     # Near side and the finest runs: the state (accumulated colour and coverage, occluders) is
-    # carried to each finer run by one upsampling of its 7 channels.
+    # carried to each finer run by one upsampling of its nc + 3 channels.
     s_cur = factors[runs[0][0]]
     state = (zeros(s_cur),) * n_lanes
     for i_run in range(last_fine + 1):
@@ -597,14 +600,12 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
     # Far side: seen through the finest runs' (sharp) transmittance, applied at full resolution;
     # the far runs occlude each other at their own, coarser resolutions.
     if last_fine + 1 < len(runs):
-        occluders, prev_occ = state[0][2], state[0][4]
-        seen = 1.0 - occluders - prev_occ
+        seen = 1.0 - state[0][2]
         transmit = jnp.clip(seen, 0.0, 1.0)
         inside = (seen > 0.0) & (seen < 1.0)
         # the part of the last fine slice that the first far slice sees (not in `transmit`)
         # still hides the far slices behind it
-        fars = tuple((None, None, jnp.zeros_like(lane[4]), lane[3] - lane[4],
-                      jnp.zeros_like(lane[4])) for lane in state)
+        fars = tuple((None, None, jnp.zeros_like(lane[2]), lane[3] - lane[2]) for lane in state)
         far = []
         for i_run in range(last_fine + 1, len(runs)):
             s = factors[runs[i_run][0]]
@@ -619,7 +620,7 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
             s_back = s
         back = [_upsample(b, s_back // s_min) for b in back]
         # the far surfaces are seen through the fine runs; the reflection (channels 3:6) is not
-        d_transmit = [jnp.where(inside, -(lane[2] + lane[4]), 0.0) for lane in state[1:]]
+        d_transmit = [jnp.where(inside, -lane[2], 0.0) for lane in state[1:]]
         new = []
         for i, (lane, b) in enumerate(zip(state, back)):
             if i == 0:

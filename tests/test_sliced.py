@@ -211,6 +211,7 @@ def test_written_out_jacobian_equals_autodiff(aperture, window, extras):
 
     want = jax.jacfwd(f)(jnp.array([cam.focus_distance, aperture]))
     out, jac = sliced_defocus_jacobian(rgb, depth, cam, window=window, **kw)
+    jac = np.stack(jac, axis=-1)
     assert jac.shape == (n, n, 3, 2)
     np.testing.assert_allclose(out, f(jnp.array([cam.focus_distance, aperture])), atol=1e-14)
     np.testing.assert_allclose(jac, want, rtol=0, atol=1e-12 * max(1.0, float(np.abs(want).max())))
