@@ -47,8 +47,6 @@ Entry points:
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import math
 import warnings
 from dataclasses import dataclass
@@ -417,22 +415,6 @@ def _sources(rgb, depth, reflection, layers, dtype):
     return lrgb, inverse_depth(jnp.asarray(layers.depth, dtype)), jnp.asarray(layers.alpha, dtype)
 
 
-_DENSE = contextvars.ContextVar("dofjax_defocus_dense_jacobian", default=True)
-
-
-@contextlib.contextmanager
-def plain_autodiff():
-    """Within (at trace time): the sliced defocus differentiates (focus, aperture) by plain
-    autodiff instead of its dense Jacobian. For callers that build their own dense Jacobian
-    around it (`fit_focus`'s residual) or only use forward mode: a Jacobian nested in another
-    compiles to a program ~1.7x larger for no gain."""
-    token = _DENSE.set(False)
-    try:
-        yield
-    finally:
-        _DENSE.reset(token)
-
-
 def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blades, rotation, ratio,
          method="pyramid", samples=None):
     if method == "lens":  # plain autodiff: sheet positions are constants, weights are cheap
@@ -450,11 +432,10 @@ def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blade
 
         y = jnp.stack(jnp.broadcast_arrays(jnp.asarray(camera.focus_distance),
                                            jnp.asarray(camera.aperture_radius)))
-        if not _DENSE.get():  # plain autodiff (`plain_autodiff`)
-            return core(y, (rgb, depth, camera, reflection, reflection_depth, layers)), None
         # derivatives w.r.t. (focus, aperture) through J = d image / d(focus, aperture), built by
-        # one jacfwd: a reverse-mode gradient then costs that jacfwd (~3x a forward pass), not a
-        # transpose of the shifted-sum blurs (~9x their forward cost on the CPU); derivatives
+        # one written-out forward-mode pass (`sliced_defocus_jacobian`, ~3x a forward pass): a
+        # reverse-mode gradient then costs that pass, not a transpose of the shifted-sum blurs
+        # (~9x their forward cost on the CPU); derivatives
         # w.r.t. the images and the camera's other fields by plain autodiff. core reads focus
         # and aperture from y only: their copies in args carry no tangent (else the rule would
         # add a whole second forward-mode pass for a zero contribution)

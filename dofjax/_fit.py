@@ -65,7 +65,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._autodiff import value_and_jacobian
 from ._camera import Camera, coc_radius
-from ._defocus import plain_autodiff, supersampling
+from ._defocus import supersampling
 from ._linalg import ThinQR, unit_column_svd
 from ._numerics import box_pool as _pool
 from ._numerics import inverse_depth, safe_div
@@ -365,14 +365,15 @@ class _Param(eqx.Module):
 def _predict(ul: Array, data: _Data, camera: Camera, model: Callable) -> Array:
     cam = camera.replace(focus_distance=1.0 / ul[0], aperture_radius=jnp.exp(ul[1]))
     extras = {} if data.extras is None else data.extras.kwargs()
-    # the solvers differentiate the residual through their own dense Jacobian (`_solve`), the
-    # covariance by jacfwd: the defocus's own one would only be nested inside.
+    # the solvers differentiate the residual through their own dense Jacobian (`_solve`), which
+    # the sliced model's written-out one (`sliced_defocus_jacobian`) feeds: ~14 % faster fits
+    # than plain forward mode through it (256 x 256, `benchmarks/fit_speed.py`).
     # The abstract mesh in force is set explicitly: JAX traces a custom JVP rule (that of
     # `value_and_jacobian`, which optimistix's Gauss-Newton family linearises) with it set (to
     # the empty mesh when there is none) and everything else with it unset, and the jitted
     # defocus's trace cache keys on that context: each resolution's model was traced twice
     # (tracing + lowering of a 256x256 fit: 10.3 s with the misses, 7.7 s without).
-    with plain_autodiff(), jax.sharding.use_abstract_mesh(jax.sharding.get_abstract_mesh()):
+    with jax.sharding.use_abstract_mesh(jax.sharding.get_abstract_mesh()):
         pred = model(data.rgb, data.depth, cam, **extras)
     return _pool(pred, _factor(data), 0)  # a supersampled sharp input (`Camera.scaled`)
 
