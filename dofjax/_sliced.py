@@ -385,11 +385,14 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     dtype = rgb.dtype
     colour, q, alpha, q_r = _source_fields(rgb, depth, layers, camera, levels, reflection,
                                            reflection_depth, False)
-    # c = A k (1/z - 1/d): a change of A scales every source's c (dc = c dA / A), one of d
-    # shifts them all alike (dc = A k dd / d^2). So the passes carry two directions whose dq =
-    # 2 |c| dc are functions of q itself (no tangent images to read): "scale" (dc = c, dq = 2 q)
-    # and "shift" (dc = 1 px, dq = 2 |c|); J follows by the chain rule below.
-    directions = (lambda q: 2.0 * q, lambda q: 2.0 * safe_sqrt(jnp.abs(q)))
+    # c = A k (1/z - 1/d): a change of d shifts every source's c alike (dc/dd = A k / d^2), one
+    # of A scales them (dc/dA = c / A). So each tangent's dq = 2 |c| dc is a scalar times q or
+    # |c|, a function of q itself (no tangent images are built or read), and the two passes
+    # give J's columns directly. At A = 0 every q is 0 and so is dq/dA = 2 A e|e| (q = A^2 e|e|).
+    a, d = jnp.asarray(camera.aperture_radius, dtype), jnp.asarray(camera.focus_distance, dtype)
+    shift = 2.0 * a * jnp.asarray(camera.pixel_scale, dtype) / (d * d)
+    scale = safe_div(2.0, a)
+    directions = (lambda q: shift * safe_sqrt(jnp.abs(q)), lambda q: scale * q)
     d_alpha = [None, None]
     if layers is not None:  # a peeled layer's gate depends on its and the visible surface's c
         raw = alpha.at[1:].set(jnp.asarray(layers.alpha[1:], dtype))
@@ -399,14 +402,10 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
             return raw.at[1:].multiply(jnp.clip(i[1:] - i[0] - 1.5, 0.0, 1.0))
 
         d_alpha = [jax.jvp(gate, (q,), (dq(q),))[1] for dq in directions]
-    out, (d_scale, d_shift) = _composite(
+    out, jac = _composite(
         colour, q, alpha, reflection, q_r, list(zip(directions, d_alpha)), window=float(window),
         blades=blades, rotation=float(rotation), ratio=float(ratio), min_radius=float(min_radius))
-    a, d = jnp.asarray(camera.aperture_radius, dtype), jnp.asarray(camera.focus_distance, dtype)
-    # d out / dA = scale / A (0 at A = 0, where dq / dA = 2 A e|e| vanishes with q = A^2 e|e|)
-    jac_a = safe_div(d_scale, a)
-    jac_d = d_shift * (a * jnp.asarray(camera.pixel_scale, dtype) / (d * d))
-    return out, (jac_d, jac_a)
+    return out, tuple(jac)
 
 
 def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, rotation, ratio,
