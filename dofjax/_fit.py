@@ -29,8 +29,10 @@ How the fit works:
   a basin narrower than any affordable grid's spacing, and those points are screened even
   when they do not rank among the 3 (within `_MODE_RATIO` of the best other loss).
 - Cost per solver step: the residual's JVP is a product with a Jacobian materialised once per
-  evaluation by `jax.jacfwd` (`_autodiff.value_and_jacobian`), so optimistix's linearisations
-  (one per column, the predicted reduction, every rejected step) never run the model again.
+  evaluation by `jax.jacfwd` (`_autodiff.value_and_jacobian`; through the sliced model that is
+  its written-out forward mode, `_sliced.sliced_defocus_jacobian`), so optimistix's
+  linearisations (one per column, the predicted reduction, every rejected step) never run the
+  model again.
   That Jacobian (w.r.t. u and log A) is also the residual's auxiliary output: the polish's
   last one gives the covariance.
   Levenberg-Marquardt accepts steps that change the loss only at float rounding level
