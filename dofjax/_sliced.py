@@ -39,7 +39,9 @@
 
 Kernels depend only on static choices (window, shape), so derivatives w.r.t. focus and aperture
 flow only through the slice weights. `sliced_defocus(...)` is pure and jittable (the window is
-static); `dofjax.defocus(..., method="sliced")` is the validated entry point.
+static); `dofjax.defocus(..., method="sliced")` is the validated entry point. Its derivatives
+w.r.t. (focus, aperture) come from `sliced_defocus_jacobian`: the same pass carrying two
+tangents beside the image (~3x a forward pass; `jax.jacfwd` through it took ~4.4x).
 """
 
 from __future__ import annotations
