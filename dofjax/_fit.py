@@ -368,8 +368,9 @@ def _predict(ul: Array, data: _Data, camera: Camera, model: Callable) -> Array:
     cam = camera.replace(focus_distance=1.0 / ul[0], aperture_radius=jnp.exp(ul[1]))
     extras = {} if data.extras is None else data.extras.kwargs()
     # the solvers differentiate the residual through their own dense Jacobian (`_solve`), which
-    # the sliced model's written-out one (`sliced_defocus_jacobian`) feeds: ~14 % faster fits
-    # than plain forward mode through it (256 x 256, `benchmarks/fit_speed.py`).
+    # the sliced model's written-out one (`sliced_defocus_jacobian`) feeds (256 x 256
+    # `benchmarks/fit_speed.py`: 0.93-0.96 s per fit vs 0.99-1.01 s with plain forward mode
+    # through the model, alternating runs).
     # The abstract mesh in force is set explicitly: JAX traces a custom JVP rule (that of
     # `value_and_jacobian`, which optimistix's Gauss-Newton family linearises) with it set (to
     # the empty mesh when there is none) and everything else with it unset, and the jitted
