@@ -13,9 +13,8 @@ def dense_jacobian(fn, y, args, jac_fn=None):
     """fn(y, args), differentiated w.r.t. the 1-D array y through its Jacobian, built by one
     forward-mode pass with len(y) tangents (or by `jac_fn(y, args) -> (fn(y, args), J)`, where
     the model has a cheaper one of its own; J of shape out.shape + y.shape, or a tuple of len(y)
-    arrays shaped like out). Derivatives w.r.t.
-    `args` (e.g. the input colours) are exact too, by plain autodiff of fn (without the
-    shortcut).
+    arrays shaped like out). Derivatives w.r.t. `args` (e.g. the input colours) are exact too,
+    by plain autodiff of fn (without the shortcut).
 
     For a model with one or two parameters (focus, aperture) the linearisation becomes the
     product `J @ dy`:
