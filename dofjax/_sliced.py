@@ -376,7 +376,7 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     carries both tangents beside the image.
 
     Forward mode written out rather than left to `jax.jacfwd` (which took ~4.4x a forward pass
-    at 512 x 512, this 3.05-3.12x in `benchmarks/defocus.py`): the slice weights' derivatives are the hats' constant slopes
+    at 512 x 512, this 3.04-3.12x in `benchmarks/defocus.py`): the slice weights' derivatives are the hats' constant slopes
     (`_level_slopes`, from the weights themselves) times each source's dq, which is a function
     of q (no tangent images are built or read), and the tangents run as separate arrays
     through the same blurs and compositing (a batched tangent axis compiles to slower fusions
