@@ -219,6 +219,27 @@ def test_written_out_jacobian_equals_autodiff(aperture, window, extras):
         assert np.abs(jac).max() > 1e-3
 
 
+def test_second_derivatives_through_the_written_out_jacobian():
+    # defocus_fn's derivatives come from sliced_defocus_jacobian; a Hessian differentiates that
+    # pass again (forward over forward): it must equal plain autodiff's Hessian of the model
+    n = 24
+    rng = np.random.default_rng(12)
+    rgb, depth = rng.random((n, n, 3)), rng.uniform(0.8, 8.0, (n, n))
+    depth[:3] = np.inf
+    cam = camera(width=n, height=n, focus_distance=2.1, aperture_radius=0.1)
+    w = rng.random((n, n, 3))
+    f = dofjax.defocus_fn(rgb, depth, cam, window=4, method="sliced")
+
+    def plain(p):
+        return sliced_defocus(rgb, depth, cam.replace(focus_distance=p[0], aperture_radius=p[1]),
+                              window=4)
+
+    p = jnp.array([2.1, 0.1])
+    got = jax.hessian(lambda p: jnp.sum(w * f(p[0], p[1]) ** 2))(p)
+    want = jax.hessian(lambda p: jnp.sum(w * plain(p) ** 2))(p)
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-10 * float(np.abs(want).max()))
+
+
 def test_float32_image_of_float64_parameters_differentiates():
     # the dense Jacobian's tangents take the image's dtype (float32 here), whatever the
     # parameters' (float64 under x64): a dtype mismatch used to fail in the custom JVP rule
