@@ -223,12 +223,13 @@ class Camera(eqx.Module):
         return right, image_up, forward
 
     def pixel_directions(
-        self, offsets: Float[Array, "*s 2"] | None = None
+        self, offsets: Float[Array, "*s 2"] | None = None, *, per_pixel: bool = False
     ) -> Float[Array, "*s h w 3"]:
         """World-space ray directions through pixels, scaled so their forward component is 1.
 
         With that scaling the ray parameter t of a hit *is* its z-depth. `offsets` are positions
         inside the pixel in [0, 1)^2 as (x, y) with y down; the default is the pixel centre.
+        With `per_pixel`, offsets are (*s, h, w, 2): each pixel its own positions.
         """
         if offsets is None:
             offsets = jnp.full((2,), 0.5, dtype=self.fov.dtype)
@@ -237,9 +238,15 @@ class Camera(eqx.Module):
         k = self.pixel_scale
         cols = jnp.arange(self.width, dtype=self.fov.dtype)
         rows = jnp.arange(self.height, dtype=self.fov.dtype)
-        batch = offsets.shape[:-1]
-        ox = offsets[..., 0].reshape(batch + (1, 1))
-        oy = offsets[..., 1].reshape(batch + (1, 1))
+        if per_pixel:
+            if offsets.shape[-3:] != (self.height, self.width, 2):
+                raise ValueError(f"pixel_directions: per-pixel offsets must end in (height, width"
+                                 f", 2) = ({self.height}, {self.width}, 2), got {offsets.shape}")
+            ox, oy = offsets[..., 0], offsets[..., 1]
+        else:
+            batch = offsets.shape[:-1]
+            ox = offsets[..., 0].reshape(batch + (1, 1))
+            oy = offsets[..., 1].reshape(batch + (1, 1))
         x = (cols[None, :] + ox - self.width / 2.0) / k
         y = (self.height / 2.0 - (rows[:, None] + oy)) / k
         return x[..., None] * right + y[..., None] * image_up + forward

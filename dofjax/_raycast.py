@@ -16,8 +16,6 @@ stay around `_CHUNK_ELEMENTS` entries, whatever the image size and primitive cou
 
 from __future__ import annotations
 
-import math
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -44,6 +42,7 @@ from ._intersect import (
 )
 from ._numerics import safe_div, safe_sqrt
 from ._rgbd import RGBD, Layers
+from ._sampling import MAX_STRATIFIED, pixel_positions
 from ._scene import Scene
 
 # Ray x primitive (x light) pairs evaluated at once per chunk; bounds the working set to a few
@@ -470,30 +469,6 @@ def trace(scene: Scene, origins: Float[Array, "*b 3"], directions: Float[Array, 
 # Incremented each time `render` is traced (compiled); tests use it as a retrace guard.
 _render_traces = 0
 
-_PLASTIC = 1.324717957244746  # root of x^3 = x + 1; the R2 sequence's generator
-
-
-def sample_offsets(spp: int, dtype=None) -> Float[Array, "spp 2"]:
-    """Deterministic positions inside a pixel, in [0, 1)^2 as (x, y), for `spp` colour samples.
-
-    A perfect square spp = n^2 gives the centres of an n x n grid of strata (stratified
-    supersampling without jitter: deterministic, no key). Any other spp uses the first spp points of
-    Roberts' R2 low-discrepancy sequence, `frac(1/2 + (i + 1) (1/g, 1/g^2))` with g the plastic
-    number. spp = 1 is the pixel centre.
-    """
-    dtype = jnp.result_type(float) if dtype is None else dtype
-    n = math.isqrt(spp)
-    if n * n == spp:
-        c = (np.arange(n) + 0.5) / n
-        xs, ys = np.meshgrid(c, c, indexing="xy")
-        pts = np.stack([xs.ravel(), ys.ravel()], axis=-1)
-    else:
-        i = np.arange(1, spp + 1)[:, None]
-        alpha = np.array([1.0 / _PLASTIC, 1.0 / _PLASTIC**2])
-        pts = np.mod(0.5 + i * alpha, 1.0)
-    return jnp.asarray(pts, dtype=dtype)
-
-
 # Samples whose surface lies within this relative inverse depth of the pixel centre's surface are
 # taken as the same surface when a hidden layer is box-filtered (a slanted surface changes far less
 # than 10 % in depth across one pixel except near its horizon, where defocus hardly varies).
@@ -551,7 +526,9 @@ def _render(scene: Scene, camera: Camera, spp: int, layers: int | None, closed) 
     if spp > 1:
         # Colour is averaged over the strata; depth (and the reflection's depth) stays the pixel
         # centre's, so it is an exact z-depth and never a blend of two surfaces.
-        ds = camera.pixel_directions(sample_offsets(spp, dtype))  # (spp, H, W, 3)
+        pos = pixel_positions(jnp.arange(spp), spp, (h, w), dtype,
+                              sampler="stratified" if spp <= MAX_STRATIFIED else "random")
+        ds = camera.pixel_directions(pos, per_pixel=True)  # (spp, H, W, 3)
         ds = jnp.moveaxis(ds, 0, 2).reshape(h * w, spp, 3)
         if layers is None:  # the centre ray rides along with the samples: one shading program
             ds = jnp.concatenate([d[:, None, :], ds], axis=1)
@@ -595,8 +572,8 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
         scene: the scene (`dofjax.Scene`).
         camera: supplies pose, field of view and resolution (focus and aperture are unused here:
             the render is sharp; changing them does not recompile).
-        spp: colour samples per pixel (static). A square n^2 uses an n x n stratified grid, other
-            values a low-discrepancy pattern (see `sample_offsets`); deterministic, no key.
+        spp: colour samples per pixel (static): stratified, jittered differently in every pixel
+            (`_sampling.pixel_positions`; a fixed key, so deterministic).
         layers: if given (static, >= 1), also peel the first `layers` things seen along each
             pixel's ray into `RGBD.layers` (see below).
 

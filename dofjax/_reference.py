@@ -21,7 +21,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Int
 
 from ._camera import Camera
 from ._sampling import (
@@ -29,6 +29,7 @@ from ._sampling import (
     SAMPLERS,
     aperture_points,
     grid_shape,
+    pixel_positions,
     unit_square_samples,
 )
 from ._scene import Scene
@@ -38,38 +39,6 @@ from ._types import Image
 # small enough that the ray caster's per-ray intermediates (a few floats per primitive) stay well
 # inside a laptop's memory for scenes of a few hundred primitives.
 _RAYS_PER_CHUNK = 1 << 17
-
-
-def pixel_offsets(
-    index: Int[Array, " c"], spp: Int[Array, ""] | int, dtype=None
-) -> Float[Array, "c 2"]:
-    """Positions inside the pixel, in [0, 1)^2 as (x, y) with y down, of samples `index` of `spp`.
-
-    Exactly the deterministic pattern `dofjax.render` uses for its supersampling
-    (`_raycast.sample_offsets`: the centres of an n x n grid of strata, row by row, for spp = n^2,
-    else Roberts' R2 sequence `frac(1/2 + (i + 1) (1/g, 1/g^2))`), evaluated here per sample index
-    with a traced spp, so one compiled reference serves every spp. In float64 the values agree with
-    `sample_offsets` to ~1e-14 (XLA may fuse the R2 multiply-add), so aperture 0 reproduces
-    `render(..., spp=spp)` to rounding.
-    The randomness of the reference is all in the lens points, independent of these positions.
-    """
-    from ._raycast import _PLASTIC
-
-    dtype = dtype or jnp.result_type(float)
-    spp = jnp.asarray(spp, jnp.int32)
-    i = jnp.asarray(index, jnp.int32)
-    # isqrt of an int32 through floating point, corrected by one step either way.
-    n = jnp.floor(jnp.sqrt(spp.astype(jnp.float32))).astype(jnp.int32)
-    n = jnp.where((n + 1) * (n + 1) <= spp, n + 1, n)
-    n = jnp.where(n * n > spp, n - 1, n)
-    square = n * n == spp
-    nf = n.astype(dtype)
-    gx = ((i % n).astype(dtype) + 0.5) / nf
-    gy = ((i // n).astype(dtype) + 0.5) / nf
-    k = (i + 1).astype(dtype)
-    rx = jnp.mod(0.5 + k * (1.0 / _PLASTIC), 1.0)
-    ry = jnp.mod(0.5 + k * (1.0 / _PLASTIC**2), 1.0)
-    return jnp.stack([jnp.where(square, gx, rx), jnp.where(square, gy, ry)], axis=-1).astype(dtype)
 
 
 def _validate(spp, shape, blades, rotation, ratio, chunk, sampler, camera, key):
@@ -144,6 +113,7 @@ def _accumulate(
     shape: str,
     blades: int | None,
     sampler: str,
+    pixel_sampler: str,
 ) -> Image:
     """Sum of the radiance of samples in chunks [first, stop) for every pixel: (H, W, 3)."""
     from ._raycast import trace
@@ -161,11 +131,12 @@ def _accumulate(
     def body(c, acc):
         index = c * chunk + jnp.arange(chunk, dtype=jnp.int32)
         valid = index < spp
-        pix = pixel_offsets(jnp.minimum(index, spp - 1), spp, dtype)  # (chunk, 2)
+        # the pixel positions `render` uses at this spp (same cells, jitter and key)
+        pix = pixel_positions(index, spp, (h, w), dtype, nx=nx, sampler=pixel_sampler)
         # Directions with unit forward component through the pixel positions: the focus-plane point
         # of a sample is eye + d * dirs (DESIGN.md section 1: the focal surface is the plane z_cam =
         # d).
-        dirs = camera.pixel_directions(pix)  # (chunk, h, w, 3)
+        dirs = camera.pixel_directions(pix, per_pixel=True)  # (chunk, h, w, 3)
         u = unit_square_samples(lens_key, index, pixel_seed, spp, sampler, dtype=dtype, nx=nx)
         lens = aperture_points(u, shape, blades, rotation, ratio)  # unit aperture
         lens_world = lens[..., 0:1] * right + lens[..., 1:2] * image_up  # (chunk, h, w, 3)
@@ -236,7 +207,8 @@ def render_reference(
     n_chunks = -(-spp // chunk)
     args = (scene, camera, key, jnp.asarray(rotation, dtype), jnp.asarray(ratio, dtype))
     tail = (jnp.int32(spp), jnp.int32(grid_shape(spp)[0]))
-    static = dict(chunk=chunk, shape=shape, blades=blades, sampler=sampler)
+    static = dict(chunk=chunk, shape=shape, blades=blades, sampler=sampler,
+                  pixel_sampler="stratified" if spp <= MAX_STRATIFIED else "random")
     if not progress:
         total = _accumulate(*args, jnp.int32(0), jnp.int32(n_chunks), *tail, **static)
         return total / spp
