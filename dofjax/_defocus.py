@@ -423,35 +423,30 @@ def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blade
                            layers=layers, samples=LENS_SAMPLES if samples is None else int(samples))
         return out, None
     if method == "sliced":
-        def core(y, a):
-            rgb, depth, camera, reflection, reflection_depth, layers = a
-            cam = camera.replace(focus_distance=y[0], aperture_radius=y[1])
-            return sliced_defocus(rgb, depth, cam, window=window, blades=blades,
-                                  rotation=rotation, ratio=ratio, reflection=reflection,
-                                  reflection_depth=reflection_depth, layers=layers)
+        def at(fn):
+            """fn (`sliced_defocus` or `sliced_defocus_jacobian`) at focus, aperture = y."""
+            def call(y, a):
+                rgb, depth, camera, reflection, reflection_depth, layers = a
+                cam = camera.replace(focus_distance=y[0], aperture_radius=y[1])
+                return fn(rgb, depth, cam, window=window, blades=blades, rotation=rotation,
+                          ratio=ratio, reflection=reflection, reflection_depth=reflection_depth,
+                          layers=layers)
+            return call
 
         y = jnp.stack(jnp.broadcast_arrays(jnp.asarray(camera.focus_distance),
                                            jnp.asarray(camera.aperture_radius)))
         # derivatives w.r.t. (focus, aperture) through J = d image / d(focus, aperture), built by
         # one written-out forward-mode pass (`sliced_defocus_jacobian`, ~3x a forward pass): a
         # reverse-mode gradient then costs that pass, not a transpose of the shifted-sum blurs
-        # (~9x their forward cost on the CPU); derivatives
-        # w.r.t. the images and the camera's other fields by plain autodiff. core reads focus
-        # and aperture from y only: their copies in args carry no tangent (else the rule would
-        # add a whole second forward-mode pass for a zero contribution)
+        # (~9x their forward cost on the CPU); derivatives w.r.t. the images and the camera's
+        # other fields by plain autodiff. The model reads focus and aperture from y only: their
+        # copies in args carry no tangent (else the rule would add a whole second forward-mode
+        # pass for a zero contribution)
         rest = camera.replace(focus_distance=jax.lax.stop_gradient(camera.focus_distance),
                               aperture_radius=jax.lax.stop_gradient(camera.aperture_radius))
-
-        def jacobian(y, a):  # the image and J, its tangents written out (`_sliced`)
-            rgb, depth, camera, reflection, reflection_depth, layers = a
-            cam = camera.replace(focus_distance=y[0], aperture_radius=y[1])
-            return sliced_defocus_jacobian(rgb, depth, cam, window=window, blades=blades,
-                                           rotation=rotation, ratio=ratio,
-                                           reflection=reflection,
-                                           reflection_depth=reflection_depth, layers=layers)
-
-        out = dense_jacobian(core, y, (rgb, depth, rest, reflection, reflection_depth, layers),
-                             jacobian)
+        out = dense_jacobian(at(sliced_defocus), y,
+                             (rgb, depth, rest, reflection, reflection_depth, layers),
+                             at(sliced_defocus_jacobian))
         return out, None
     dtype = rgb.dtype
     src_rgb, src_inv, src_a = _sources(rgb, depth, reflection, layers, dtype)

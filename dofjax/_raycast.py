@@ -42,7 +42,7 @@ from ._intersect import (
 )
 from ._numerics import safe_div, safe_sqrt
 from ._rgbd import RGBD, Layers
-from ._sampling import MAX_STRATIFIED, pixel_positions
+from ._sampling import pixel_positions, pixel_sampler
 from ._scene import Scene
 
 # Ray x primitive (x light) pairs evaluated at once per chunk; bounds the working set to a few
@@ -526,8 +526,7 @@ def _render(scene: Scene, camera: Camera, spp: int, layers: int | None, closed) 
     if spp > 1:
         # Colour is averaged over the strata; depth (and the reflection's depth) stays the pixel
         # centre's, so it is an exact z-depth and never a blend of two surfaces.
-        pos = pixel_positions(jnp.arange(spp), spp, (h, w), dtype,
-                              sampler="stratified" if spp <= MAX_STRATIFIED else "random")
+        pos = pixel_positions(jnp.arange(spp), spp, (h, w), dtype, sampler=pixel_sampler(spp))
         ds = camera.pixel_directions(pos, per_pixel=True)  # (spp, H, W, 3)
         ds = jnp.moveaxis(ds, 0, 2).reshape(h * w, spp, 3)
         if layers is None:  # the centre ray rides along with the samples: one shading program

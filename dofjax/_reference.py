@@ -30,6 +30,7 @@ from ._sampling import (
     aperture_points,
     grid_shape,
     pixel_positions,
+    pixel_sampler,
     unit_square_samples,
 )
 from ._scene import Scene
@@ -113,7 +114,7 @@ def _accumulate(
     shape: str,
     blades: int | None,
     sampler: str,
-    pixel_sampler: str,
+    position_sampler: str,
 ) -> Image:
     """Sum of the radiance of samples in chunks [first, stop) for every pixel: (H, W, 3)."""
     from ._raycast import trace
@@ -132,7 +133,7 @@ def _accumulate(
         index = c * chunk + jnp.arange(chunk, dtype=jnp.int32)
         valid = index < spp
         # the pixel positions `render` uses at this spp (same cells, jitter and key)
-        pix = pixel_positions(index, spp, (h, w), dtype, nx=nx, sampler=pixel_sampler)
+        pix = pixel_positions(index, spp, (h, w), dtype, nx=nx, sampler=position_sampler)
         # Directions with unit forward component through the pixel positions: the focus-plane point
         # of a sample is eye + d * dirs (DESIGN.md section 1: the focal surface is the plane z_cam =
         # d).
@@ -208,7 +209,7 @@ def render_reference(
     args = (scene, camera, key, jnp.asarray(rotation, dtype), jnp.asarray(ratio, dtype))
     tail = (jnp.int32(spp), jnp.int32(grid_shape(spp)[0]))
     static = dict(chunk=chunk, shape=shape, blades=blades, sampler=sampler,
-                  pixel_sampler="stratified" if spp <= MAX_STRATIFIED else "random")
+                  position_sampler=pixel_sampler(spp))
     if not progress:
         total = _accumulate(*args, jnp.int32(0), jnp.int32(n_chunks), *tail, **static)
         return total / spp

@@ -263,6 +263,12 @@ def unit_square_samples(
     return jnp.stack([u, v], axis=-1)
 
 
+def pixel_sampler(spp: int) -> str:
+    """`pixel_positions`' sampler for `spp` samples per pixel: "stratified" up to
+    `MAX_STRATIFIED` (`permute` hashes in 32 bits), "random" beyond."""
+    return "stratified" if spp <= MAX_STRATIFIED else "random"
+
+
 # Fixed key of the pixel positions (`pixel_positions`): `render` and `render_reference` draw the
 # same ones, so the reference at aperture 0 is `render` at the same spp.
 _PIXEL_KEY = 0x5EED
@@ -281,8 +287,8 @@ def pixel_positions(
 
     Stratified and jittered (`unit_square_samples`): one sample in each cell of an
     nx x (spp / nx) grid, at a jittered place inside it, with a different jitter in every pixel,
-    drawn from a fixed key, so deterministic. spp = 1 is the pixel centre. `sampler="random"`
-    (i.i.d.) is for spp beyond `MAX_STRATIFIED`.
+    drawn from a fixed key, so deterministic. spp = 1 is the pixel centre. `sampler`: as
+    `pixel_sampler(spp)` gives it.
 
     Every pixel used to place its samples on the same regular grid of cell centres: a periodic
     texture whose period beats with the grid (a checkered floor towards its horizon) then came
@@ -293,4 +299,3 @@ def pixel_positions(
     seed = jax.random.bits(order_key, shape, dtype=jnp.uint32)
     pts = unit_square_samples(jitter_key, index, seed, spp, sampler, dtype=dtype, nx=nx)
     return jnp.where(jnp.asarray(spp) == 1, jnp.asarray(0.5, dtype), pts)
-

@@ -278,6 +278,13 @@ def _level_index_q(q, levels):
     return jnp.interp(-q, jnp.asarray(-q_lv, q.dtype), jnp.arange(len(levels), dtype=q.dtype))
 
 
+def _behind(i_hidden, i_visible):
+    """Weight of a hidden surface at fractional level index `i_hidden` behind the visible one at
+    `i_visible` (`_level_index`): 0 within 1.5 levels of it, 1 from 2.5 levels on (see
+    `surface_sources`)."""
+    return jnp.clip(i_hidden - i_visible - 1.5, 0.0, 1.0)
+
+
 def surface_sources(rgb, depth, reflection, layers, camera, levels):
     """(colour, z-depth, coverage) of every surface that can be seen through the lens.
 
@@ -297,8 +304,7 @@ def surface_sources(rgb, depth, reflection, layers, camera, levels):
         i0 = _level_index(coc_radius(depth, camera).astype(rgb.dtype), levels)
         for k in range(1, layers.depth.shape[0]):
             ik = _level_index(coc_radius(layers.depth[k], camera).astype(rgb.dtype), levels)
-            useful = jnp.clip(ik - i0 - 1.5, 0.0, 1.0)
-            out.append((layers.rgb[k], layers.depth[k], layers.alpha[k] * useful))
+            out.append((layers.rgb[k], layers.depth[k], layers.alpha[k] * _behind(ik, i0)))
     return out
 
 
@@ -314,7 +320,7 @@ def _sources(rgb, depth, layers, camera, levels, reflection=None, hidden=False):
         window = float(np.max(np.abs(levels)))
         h_rgb, h_c, h_a = hidden_layer(jnp.moveaxis(colour, -1, 0), jnp.clip(c, -window, window),
                                        window)
-        useful = jnp.clip(_level_index(h_c, levels) - _level_index(c, levels) - 1.5, 0.0, 1.0)
+        useful = _behind(_level_index(h_c, levels), _level_index(c, levels))
         out.append((jnp.moveaxis(h_rgb, 0, -1), h_c, h_a * useful))
     return out
 
@@ -376,11 +382,11 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     carries both tangents beside the image.
 
     Forward mode written out rather than left to `jax.jacfwd` (which took ~4.4x a forward pass
-    at 512 x 512, this 3.04-3.12x in `benchmarks/defocus.py`): the slice weights' derivatives are the hats' constant slopes
-    (`_level_slopes`, from the weights themselves) times each source's dq, which is a function
-    of q (no tangent images are built or read), and the tangents run as separate arrays
-    through the same blurs and compositing (a batched tangent axis compiles to slower fusions
-    on the CPU). Only the peeled layers' gates are differentiated by `jax.jvp`.
+    at 512 x 512, this 3.04-3.12x in `benchmarks/defocus.py`): the slice weights' derivatives
+    are the hats' constant slopes (`_level_slopes`, from the weights themselves) times each
+    source's dq, which is a function of q (no tangent images are built or read), and the
+    tangents run as separate arrays through the same blurs and compositing (a batched tangent
+    axis compiles to slower fusions on the CPU). Only the peeled layers' gates are differentiated by `jax.jvp`.
     Same arguments as `sliced_defocus` (no `hidden`: its colours depend on the camera).
     """
     levels = _levels(float(window))
@@ -401,7 +407,7 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
 
         def gate(q):
             i = _level_index_q(q, levels)
-            return raw.at[1:].multiply(jnp.clip(i[1:] - i[0] - 1.5, 0.0, 1.0))
+            return raw.at[1:].multiply(_behind(i[1:], i[0]))
 
         d_alpha = [jax.jvp(gate, (q,), (dq(q),))[1] for dq in directions]
     out, jac = _composite(
@@ -529,11 +535,12 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
             occ = front + back * back_w
             lanes = [slice_parts(front + back, occ)]
             if mirror:
-                lanes[0].append(sum(_level_weights(q_r_p, q3, first, last)) * refl_p)
+                mirror_w = _level_weights(q_r_p, q3, first, last)
+                lanes[0].append(sum(mirror_w) * refl_p)
             if tangents:
                 front_s, back_s = _level_slopes(front_w, back_w, q3)
                 if mirror:
-                    mirror_s = sum(_level_slopes(*_level_weights(q_r_p, q3, first, last), q3))
+                    mirror_s = sum(_level_slopes(*mirror_w, q3))
             for i in range(len(tangents)):  # the product rule through the weights
                 dq = d_q[i](q_p)
                 d_front, d_back = front_s * dq, back_s * dq
