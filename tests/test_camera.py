@@ -33,6 +33,16 @@ def test_pixel_scale_and_edge_ray_angle():
     assert float(d[25, 0, 0]) == pytest.approx(1.0)
 
 
+def test_per_pixel_offsets_match_shared_ones_and_bad_shapes_are_named():
+    cam = Camera(6, 4, 40.0, 2.0, 0.0)
+    offsets = jnp.array([[0.25, 0.75], [0.5, 0.1]])  # (2, 2): the same in every pixel
+    per_pixel = jnp.broadcast_to(offsets[:, None, None, :], (2, 4, 6, 2))
+    np.testing.assert_allclose(cam.pixel_directions(per_pixel, per_pixel=True),
+                               cam.pixel_directions(offsets), atol=1e-12)
+    with pytest.raises(ValueError, match=r"per-pixel offsets must end in \(height, width, 2\)"):
+        cam.pixel_directions(jnp.zeros((2, 6, 4, 2)), per_pixel=True)  # (w, h) swapped
+
+
 def test_pose_rotates_rays():
     cam = Camera(8, 8, 40.0, 2.0, 0.0, eye=(1.0, 2.0, 3.0), target=(1.0, 2.0, -7.0))
     right, up, forward = cam.basis()
