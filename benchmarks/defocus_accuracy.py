@@ -19,8 +19,9 @@ Compared, for every sharp-input spp in --sharp-spp (the sharp render box-filters
 spp stratified, jittered positions, `_sampling.pixel_positions`, the ones the reference uses;
 spp = 1 is the pixel centre; references cached before session 17 used a regular grid instead,
 which does not matter at their sample counts): both defocus methods, single-layer RGB-D and
---layers peeled layers, and the seed's algorithm (Yu 2004, the "before" row). Metrics on colours clipped to [0, 1]: RMSE, PSNR, SSIM
-(scikit-image), RMSE with the reference noise removed in quadrature, and RMSE split by region:
+--layers peeled layers, and the seed's algorithm (Yu 2004, the "before" row). Metrics on
+colours clipped to [0, 1]: RMSE, PSNR, SSIM (scikit-image), RMSE with the reference noise
+removed in quadrature, and RMSE split by region:
 
 - focus:    |c| < 1 px at the pixel centre, away from depth edges and the frame border;
 - interior: |c| >= 1 px, away from depth edges and the frame border;
