@@ -140,6 +140,7 @@ def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None, method=Non
     for k in PARAMS:
         row[k] = float(getattr(res, k))
         row[f"{k}_se"] = float(getattr(res, k + "_se"))
+        row[f"{k}_se_tiles"] = float(getattr(res, k + "_se_tiles"))
         row[f"rel_err_{k}"] = row[k] / case["truth"][k] - 1.0
     return row
 
@@ -687,17 +688,26 @@ def reference(args) -> None:
              f"Start: {'the truth (--start-at-truth)' if args.start_at_truth else 'random'}. "
              "rms at truth / at fit: rms(model - reference) / rms(reference) over the fitted "
              "pixels at the true and at the fitted camera; frame: at the truth over every "
-             "pixel.\n",
-             "| index | kind | max CoC px | true d | fit d | rel err d | true A | fit A | "
-             "rel err A | rms at truth | rms at fit | rms at truth, frame | fitted px | "
-             "identifiable | ambiguous |",
-             "|" + "---|" * 15]
+             "pixel. err/SE: the error in units of the fit's noise-only and tile-robust "
+             "standard errors (`FitResult.*_se`, `*_se_tiles`).\n",
+             "| index | kind | max CoC px | true d | fit d | rel err d | d err/SE noise, tiles | "
+             "true A | fit A | rel err A | A err/SE noise, tiles | rms at truth | rms at fit | "
+             "rms at truth, frame | fitted px | identifiable | ambiguous |",
+             "|" + "---|" * 17]
+
+    def z(r, k):
+        err = r[k] - r["truth"][k]
+        return " / ".join(f"{err / se:+.3g}" if se > 0 else "-"
+                          for se in (r[f"{k}_se"], r.get(f"{k}_se_tiles", np.nan)))
+
     for r in rows:
         t = r["truth"]
         lines.append(f"| {r['index']} | {r['kind']} | {r['max_coc_px']:.1f} | "
                      f"{t['focus_distance']:.4g} | {r['focus_distance']:.4g} | "
-                     f"{r['rel_err_focus_distance']:+.2%} | {t['aperture_radius']:.4g} | "
+                     f"{r['rel_err_focus_distance']:+.2%} | {z(r, 'focus_distance')} | "
+                     f"{t['aperture_radius']:.4g} | "
                      f"{r['aperture_radius']:.4g} | {r['rel_err_aperture_radius']:+.2%} | "
+                     f"{z(r, 'aperture_radius')} | "
                      f"{r['rel_rms_at_truth']:.4f} | {r['rel_rms_at_fit']:.4f} | "
                      f"{r['rel_rms_at_truth_frame']:.4f} | {r['fitted_fraction']:.0%} | "
                      f"{r['identifiable']} | {r['ambiguous']} |")

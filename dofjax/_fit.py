@@ -46,7 +46,10 @@ How the fit works:
   polish's Jacobian at the optimum by the chain rule (no further pass through the model). The
   columns of J are normalised before the (SVD) inverse; a normalised condition number above
   `max_condition`, a parameter at its bound, or a solution whose largest CoC is below a quarter
-  pixel (the target looks sharp) gives `identifiable=False`.
+  pixel (the target looks sharp) gives `identifiable=False`. Beside it, the tile-robust
+  (cluster-robust sandwich) covariance sums J^T r over tiles of up to 16 x 16 px: where the
+  model misses part of the target the residual is spatially correlated, s^2 (J^T J)^-1
+  understates the error, and the sandwich does not (`_uncertainty`).
 """
 
 from __future__ import annotations
@@ -109,6 +112,10 @@ _MODE_SHARE = 0.02
 # candidate's (with its grid aperture, case 103's true basin had 3.4x the best wrong minimum's
 # loss; screening every mode made a quads fit 2.1x slower).
 _MODE_RATIO = 10.0
+# Largest side (px) of the tiles of the tile-robust covariance (`_tile_size`), and the ratio of
+# tile-robust to noise-only standard error above which the residual counts as structured.
+_SE_TILE = 16
+_STRUCTURED_RATIO = 3.0
 
 
 class FitResult(eqx.Module):
@@ -118,8 +125,17 @@ class FitResult(eqx.Module):
         focus_distance: fitted d, world units along the optical axis.
         aperture_radius: fitted A, world units.
         focus_distance_se, aperture_radius_se: standard errors, world units (0 for a fixed
-            parameter; computed even when not identifiable, where they are meaningless/huge).
+            parameter; computed even when not identifiable, where they are meaningless/huge),
+            from s^2 (J^T J)^-1: right when the residual is independent pixel noise.
         covariance: (2, 2) covariance of (d, A), world units squared (zero rows for fixed ones).
+        focus_distance_se_tiles, aperture_radius_se_tiles, covariance_tiles: the same from the
+            tile-robust (cluster-robust sandwich) covariance, which treats the residual of each
+            tile of up to 16 x 16 px as one independent draw. Where the model misses part of
+            the target (a real photograph, a different renderer, an occlusion edge) the
+            residual is spatially correlated and these are the honest ones: they can be many
+            times the noise-only errors (`message` says so above 3x). For independent noise the
+            two agree to the sandwich's sampling error (~sqrt(2 / tiles), tens of %). Neither
+            includes the bias such a mismatch causes.
         loss: mean of the per-value loss rho(r) over the unmasked pixel values (for "l2", the mean
             squared residual).
         noise_sigma: residual standard deviation s = sqrt(SSE / (n - p)), image units.
@@ -140,6 +156,9 @@ class FitResult(eqx.Module):
     focus_distance_se: Float[Array, "*b"]
     aperture_radius_se: Float[Array, "*b"]
     covariance: Float[Array, "*b 2 2"]
+    focus_distance_se_tiles: Float[Array, "*b"]
+    aperture_radius_se_tiles: Float[Array, "*b"]
+    covariance_tiles: Float[Array, "*b 2 2"]
     loss: Float[Array, "*b"]
     noise_sigma: Float[Array, "*b"]
     steps: Int[Array, "*b"]
@@ -397,9 +416,9 @@ def _residual_ul(ul, data: _Data, camera: Camera, model: Callable, loss: str, de
 def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, ends=None, damping=1.0):
     """One optimistix least-squares solve from y0 (unconstrained coordinates of the free params).
 
-    Returns (y, mean loss 2 sum(rho) / n, steps, success, J) with J (n, len(free)) the
-    Jacobian of the residual w.r.t. the free parameters' (u, log A) at y: the one the solver
-    built there (`value_and_jacobian`, the residual's auxiliary output), reused for the
+    Returns (y, mean loss 2 sum(rho) / n, steps, success, (J, r)) with J (n, len(free)) the
+    Jacobian of the residual r (n,) w.r.t. the free parameters' (u, log A) at y: the ones the
+    solver built there (`value_and_jacobian`, the residual's auxiliary output), reused for the
     covariance instead of one more pass (and one more compiled copy) of the model.
 
     `ends` = (end points, their losses) makes it a screen (`_ScreenLM`, LM only): it also stops
@@ -415,7 +434,8 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, ends=None, d
 
     def fn(y, args):
         ul_free = args[-1].to_ul(y, spec.free)[free]
-        return value_and_jacobian(residual, ul_free, args)
+        r, jac = value_and_jacobian(residual, ul_free, args)
+        return r, (jac, r)
 
     # float rounding of the model's pixels (a few eps of the image's rms), as a mean square
     eps = jnp.finfo(data.target.dtype).eps
@@ -460,10 +480,25 @@ def _mad_scale(data, camera, ul, model, loss) -> Array:
     return _ROBUST_K[loss] * jnp.maximum(1.4826 * mad, floor)
 
 
-def _uncertainty(ul, jac_ul, loss, data, spec):
-    """Covariance of (d, A) in world units, s^2 and the normalised condition number, from the
-    residual's Jacobian `jac_ul` (n, len(free)) w.r.t. the free parameters' (u, log A) at `ul`
-    (the polish's last one, `_solve`) and its mean loss."""
+def _tile_size(height: int, width: int) -> int:
+    """Side (px) of the tiles whose residual scores the tile-robust covariance treats as
+    independent: 16 px, smaller on small images so that there are at least ~64 tiles."""
+    return int(min(_SE_TILE, max(2, math.isqrt(height * width // 64))))
+
+
+def _uncertainty(ul, jac_ul, res, loss, data, spec):
+    """Covariances of (d, A) in world units (noise-only and tile-robust), s^2 and the normalised
+    condition number, from the residual `res` (n,) and its Jacobian `jac_ul` (n, len(free))
+    w.r.t. the free parameters' (u, log A) at `ul` (the polish's last ones, `_solve`) and its
+    mean loss.
+
+    Noise-only: s^2 (J^T J)^-1, right when the residual is independent noise. Tile-robust: the
+    sandwich (J^T J)^-1 (sum_t g_t g_t^T) (J^T J)^-1 with g_t = J_t^T r_t summed over a tile t
+    of the image (`_tile_size`), times T / (T - p) for T tiles: the cluster-robust covariance,
+    which stays right when the residual is correlated within a tile, as a model mismatch
+    (an occlusion edge the model renders differently, say) makes it. For independent noise
+    the two agree (within the sandwich's sampling error, ~sqrt(2 / T)).
+    """
     free = spec.free
     # d r / d d = d r / d u * (-u^2); d r / d A = d r / d log A / A
     chain = jnp.stack([-ul[0] ** 2 if i == 0 else jnp.exp(-ul[1]) for i in free])
@@ -477,8 +512,9 @@ def _uncertainty(ul, jac_ul, loss, data, spec):
     # when J^T J is numerically singular (which forming J^T J would hide in float32).
     scale = jnp.sqrt(jnp.sum(jac_full * jac_full, axis=0))
     scale_safe = jnp.where(scale > 0, scale, 1.0)
+    unit = jac_full / scale_safe
     # (closed form for p <= 2: a batched LAPACK SVD can deadlock `fit_focus_batch`, see _linalg)
-    sv, vt = unit_column_svd(jac_full / scale_safe)
+    sv, vt = unit_column_svd(unit)
     condition = jnp.where(jnp.all(scale > 0), safe_div(sv[0], sv[-1], jnp.inf), jnp.inf)
     inv_sv2 = safe_div(1.0, sv * sv, jnp.inf)
     cov_n = (vt.T * inv_sv2) @ vt
@@ -486,18 +522,37 @@ def _uncertainty(ul, jac_ul, loss, data, spec):
     flat = scale <= 0
     cov_n = jnp.where(flat[:, None] | flat[None, :],
                       jnp.where(jnp.eye(p, dtype=bool), jnp.inf, 0.0), cov_n)
-    cov_free = s2 * cov_n / jnp.outer(scale_safe, scale_safe)
-    cov = jnp.zeros((2, 2), cov_free.dtype)
-    for a, i in enumerate(free):
-        for b, j in enumerate(free):
-            cov = cov.at[i, j].set(cov_free[a, b])
-    return cov, s2, condition
+    # tile scores g_t of the unit columns (both scalings of r and J by sqrt(n) cancel)
+    h, w = data.target.shape[:2]
+    t = _tile_size(h, w)
+    ph, pw = -h % t, -w % t
+    score = (unit * (res * jnp.sqrt(n))[:, None]).reshape(h, w, 3, p).sum(2)
+    score = jnp.pad(score, ((0, ph), (0, pw), (0, 0)))
+    score = score.reshape((h + ph) // t, t, (w + pw) // t, t, p).sum((1, 3)).reshape(-1, p)
+    used = jnp.pad(data.weight > 0, ((0, ph), (0, pw)))
+    tiles = jnp.sum(jnp.any(used.reshape((h + ph) // t, t, (w + pw) // t, t), axis=(1, 3)))
+    meat = score.T @ score * safe_div(tiles, tiles - p, 0.0)
+    # (a singular or flat J: infinite like the noise-only one)
+    finite = jnp.all(jnp.isfinite(cov_n))
+    safe = jnp.where(finite, cov_n, 0.0)
+    tiled_n = jnp.where(finite, safe @ meat @ safe, cov_n)
+    outer = jnp.outer(scale_safe, scale_safe)
+
+    def world(c):
+        full = jnp.zeros((2, 2), c.dtype)
+        for a, i in enumerate(free):
+            for b, j in enumerate(free):
+                full = full.at[i, j].set(c[a, b] / outer[a, b])
+        return full
+
+    return world(s2 * cov_n), world(tiled_n), s2, condition
 
 
 def _polish(state, has_alt, data, camera, param, spec, model, delta0, rtol, atol,
             rounds: int):
     """Polish the (best, alternative) pair on one level; returns (ys, losses, steps, ok, delta,
-    jacs), jacs (2, n, len(free)) the residual's Jacobian at each (see `_solve`).
+    jacs), jacs = (J (2, n, len(free)), r (2, n)) the residual's Jacobian and the residual at
+    each (see `_solve`).
 
     One compiled solver serves every round and both minima (lax.scan over rounds, then over the
     two). Round 0 polishes the pair; rounds >= 1 re-estimate the robust scale from the residuals
@@ -514,11 +569,13 @@ def _polish(state, has_alt, data, camera, param, spec, model, delta0, rtol, atol
             return _solve(pair[i], data, camera, param, spec, model, delta, rtol, atol)
 
         def skip(_):
-            return pair[i], pair_loss[i], jnp.zeros_like(pair_steps[i]), pair_ok[i], jacs[i]
+            return (pair[i], pair_loss[i], jnp.zeros_like(pair_steps[i]), pair_ok[i],
+                    tuple(x[i] for x in jacs))
 
         y, lo, st, ok, jac = jax.lax.cond(active[i], solve, skip, None)
+        jacs = tuple(x.at[i].set(j) for x, j in zip(jacs, jac))
         return (pair.at[i].set(y), pair_loss.at[i].set(lo), pair_steps.at[i].add(st),
-                pair_ok.at[i].set(ok), jacs.at[i].set(jac), delta), None
+                pair_ok.at[i].set(ok), jacs, delta), None
 
     def round_(carry, k):
         delta = carry[-1]
@@ -530,12 +587,13 @@ def _polish(state, has_alt, data, camera, param, spec, model, delta0, rtol, atol
 
     pair = state[0]
     n = 3 * data.target.shape[0] * data.target.shape[1]
-    jacs = jnp.zeros((2, n, len(spec.free)), data.target.dtype)
+    jacs = (jnp.zeros((2, n, len(spec.free)), data.target.dtype),
+            jnp.zeros((2, n), data.target.dtype))
     (pair, pair_loss, pair_steps, pair_ok, jacs, delta), _ = jax.lax.scan(
         round_, tuple(state) + (jacs, jnp.asarray(delta0, pair.dtype)), jnp.arange(rounds))
     # without an alternative, the second of the pair is the first
-    pair, pair_loss, pair_steps, pair_ok, jacs = (
-        jnp.where(has_alt, x, x[:1]) for x in (pair, pair_loss, pair_steps, pair_ok, jacs))
+    pair, pair_loss, pair_steps, pair_ok, jacs = jax.tree_util.tree_map(
+        lambda x: jnp.where(has_alt, x, x[:1]), (pair, pair_loss, pair_steps, pair_ok, jacs))
     return pair, pair_loss, pair_steps, pair_ok, delta, jacs
 
 
@@ -768,8 +826,8 @@ def _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_sc
     pair_steps, pair_ok = pair_steps[order], pair_ok[order]
     ul = param.to_ul(pair[0], spec.free)
     ul_alt = param.to_ul(pair[1], spec.free)
-    jac = jacs[order[0]]
-    cov, s2, condition = _uncertainty(ul, jac, pair_loss[0], data, spec)
+    jac, res = (x[order[0]] for x in jacs)
+    cov, cov_tiles, s2, condition = _uncertainty(ul, jac, res, pair_loss[0], data, spec)
     n = 3.0 * jnp.sum(data.weight)
     # Which side of the scene each polished minimum is on (the polish may have crossed over).
     has_alt = has_alt & ((ul[0] > u_scene) != (ul_alt[0] > u_scene))
@@ -778,7 +836,8 @@ def _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_sc
     max_coc = jnp.max(jnp.where(search.weight > 0, coc, 0.0))
     return dict(
         ul=ul, ul_alt=ul_alt, sse=pair_loss[0] * n, sse_alt=pair_loss[1] * n, has_alt=has_alt,
-        steps=pair_steps[0], converged=pair_ok[0], cov=cov, s2=s2, condition=condition,
+        steps=pair_steps[0], converged=pair_ok[0], cov=cov, cov_tiles=cov_tiles, s2=s2,
+        condition=condition,
         frac=param.fraction(ul), max_coc=max_coc, n=n, delta=delta,
         rms_target=jnp.sqrt(jnp.sum(jnp.square(data.target) * data.weight[..., None]) / n),
         pred_finite=jnp.isfinite(pair_loss[0]) & jnp.all(jnp.isfinite(jac)),
@@ -1303,6 +1362,18 @@ def _message(raw: dict, fixed_names: tuple[str, ...], max_condition: float, thre
         notes.append(f"near/far ambiguity: focus_distance={d_alt:.6g}, aperture_radius="
                      f"{a_alt:.6g} on the other side of the scene depth fits as well "
                      f"(delta SSE / s^2 = {dsse / s2:.3g} <= {threshold:g})")
+    # (noise-only errors with s^2 floored as above: a noise-free fit's rounding residual is
+    # correlated too, and is no evidence of a mismatch)
+    se = np.sqrt(np.maximum(np.diag(np.asarray(raw["cov"])), 0.0) * s2
+                 / max(float(raw["s2"]), 1e-300))
+    se_tiles = np.sqrt(np.maximum(np.diag(np.asarray(raw["cov_tiles"])), 0.0))
+    ratio = {PARAMS[i]: se_tiles[i] / se[i] for i in spec.free
+             if se[i] > 0 and np.isfinite(se[i]) and np.isfinite(se_tiles[i])}
+    worst = max(ratio, key=ratio.get, default=None)
+    if worst is not None and ratio[worst] > _STRUCTURED_RATIO:
+        notes.append(f"the residual is spatially structured (the tile-robust standard error of "
+                     f"{worst} is {ratio[worst]:.3g}x the noise-only one): the model misses part "
+                     "of the target, so use the *_se_tiles errors, and expect a bias beyond them")
     if not raw["converged"]:
         notes.append("the solver did not report convergence (max_steps reached or failed)")
     if fixed_names:
@@ -1328,6 +1399,9 @@ def _result(raw: dict, camera: Camera, fixed_names, max_condition, threshold, sp
         focus_distance_se=np.sqrt(np.maximum(cov[..., 0, 0], 0.0)),
         aperture_radius_se=np.sqrt(np.maximum(cov[..., 1, 1], 0.0)),
         covariance=cov,
+        focus_distance_se_tiles=np.sqrt(np.maximum(raw["cov_tiles"][..., 0, 0], 0.0)),
+        aperture_radius_se_tiles=np.sqrt(np.maximum(raw["cov_tiles"][..., 1, 1], 0.0)),
+        covariance_tiles=raw["cov_tiles"],
         loss=raw["sse"] / n,
         noise_sigma=np.sqrt(raw["s2"]),
         steps=raw["steps"], converged=raw["converged"],

@@ -4,21 +4,24 @@ from __future__ import annotations
 
 
 def result_rows(result, truth: dict | None = None) -> list[list[str]]:
-    """Rows (parameter, true, recovered, standard error, error/SE) for a single FitResult."""
+    """Rows (parameter, true, recovered, standard error, tile-robust standard error, relative
+    error, error / the larger SE) for a single FitResult."""
     rows = []
     for name in ("focus_distance", "aperture_radius"):
         value = float(getattr(result, name))
         se = float(getattr(result, name + "_se"))
+        se_tiles = float(getattr(result, name + "_se_tiles"))
         true = None if not truth or truth.get(name) is None else float(truth[name])
         rel = "" if true is None else f"{(value - true) / true:+.2e}"
-        z = "" if true is None or se == 0 else f"{(value - true) / se:+.2f}"
+        big = max(se, se_tiles)
+        z = "" if true is None or big == 0 else f"{(value - true) / big:+.2f}"
         rows.append([name, "" if true is None else f"{true:.6g}", f"{value:.6g}", f"{se:.3g}",
-                     rel, z])
+                     f"{se_tiles:.3g}", rel, z])
     return rows
 
 
 def format_table(rows: list[list], header=("parameter", "true", "recovered", "std err",
-                                           "rel err", "err/SE")) -> str:
+                                           "std err (tiles)", "rel err", "err/SE")) -> str:
     """A Markdown table with aligned columns.
 
     Cells may be any value (formatted with `str`; None is an empty cell); a `|` inside a cell is

@@ -143,6 +143,8 @@ def test_one_parameter_fit():
     assert abs(float(res.focus_distance) / 1.7 - 1) < 1e-6
     assert float(res.aperture_radius) == pytest.approx(0.08, rel=1e-12)
     assert float(res.aperture_radius_se) == 0.0
+    assert float(res.aperture_radius_se_tiles) == 0.0
+    assert np.isfinite(float(res.focus_distance_se_tiles))
     assert "fixed: aperture_radius" in res.message
 
 
@@ -181,7 +183,7 @@ def test_standard_errors_match_monte_carlo():
     rgb, depth = scene()
     clean = blur_model(rgb, depth, CAM.replace(**TRUE))
     sigma = 0.01
-    d, a, se_d, se_a = [], [], [], []
+    d, a, se_d, se_a, tiles_d, tiles_a = [], [], [], [], [], []
     for i in range(12):
         noise = sigma * jax.random.normal(jax.random.key(100 + i), clean.shape)
         res = fit_focus(clean + noise, rgb, depth, CAM, **KW)
@@ -189,13 +191,42 @@ def test_standard_errors_match_monte_carlo():
         a.append(float(res.aperture_radius))
         se_d.append(float(res.focus_distance_se))
         se_a.append(float(res.aperture_radius_se))
+        tiles_d.append(float(res.focus_distance_se_tiles))
+        tiles_a.append(float(res.aperture_radius_se_tiles))
         assert float(res.noise_sigma) == pytest.approx(sigma, rel=0.1)
+        assert "structured" not in res.message
     # 12 draws estimate a spread to ~ +-20 %: loose bounds, but a wrong s^2 or J (e.g. in
     # internal instead of world units) is off by far more.
-    for est, se in ((d, se_d), (a, se_a)):
+    for est, se in ((d, se_d), (a, se_a), (d, tiles_d), (a, tiles_a)):
         ratio = np.std(est, ddof=1) / np.mean(se)
         assert 0.5 < ratio < 2.0, ratio
     assert abs(np.mean(d) - 1.7) < 3 * np.mean(se_d)
+    # for independent noise the tile-robust errors are the noise-only ones, to the sandwich's
+    # sampling error (64 tiles of 4 x 4 px here: ~18 % per draw, ~5 % on the mean of 12)
+    for tiles, se in ((tiles_d, se_d), (tiles_a, se_a)):
+        assert 0.8 < np.mean(tiles) / np.mean(se) < 1.25, (tiles, se)
+
+
+def test_tile_robust_errors_flag_a_structured_misfit():
+    # the target's model saw two 8 x 8 blocks 30 % farther than the fit's depth map says: a
+    # model mismatch confined to a few tiles, which biases both parameters by far more than
+    # the noise-only errors allow (~30 of them), but within a few tile-robust ones
+    rgb, depth = scene()
+    wrong = np.array(depth)
+    wrong[8:16, 8:16] *= 1.3
+    wrong[24:32, 16:24] *= 1.3
+    target = blur_model(rgb, jnp.asarray(wrong), CAM.replace(**TRUE))
+    target = target + 0.002 * jax.random.normal(jax.random.key(1), target.shape)
+    res = fit_focus(target, rgb, depth, CAM, **KW)
+    err = abs(float(res.focus_distance) - 1.7), abs(float(res.aperture_radius) - 0.08)
+    se = float(res.focus_distance_se), float(res.aperture_radius_se)
+    tiles = float(res.focus_distance_se_tiles), float(res.aperture_radius_se_tiles)
+    assert all(e > 10 * s for e, s in zip(err, se)), (err, se)
+    assert all(e < 4 * t for e, t in zip(err, tiles)), (err, tiles)
+    assert all(t > 3 * s for t, s in zip(tiles, se)), (tiles, se)
+    assert "spatially structured" in res.message and "_se_tiles" in res.message
+    cov = np.asarray(res.covariance_tiles)
+    assert np.allclose(np.sqrt(np.diag(cov)), tiles, rtol=1e-6)
 
 
 @pytest.mark.parametrize("loss", ["huber", pytest.param("cauchy", marks=pytest.mark.slow)])

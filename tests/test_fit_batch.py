@@ -32,7 +32,8 @@ SCRIPT = textwrap.dedent(
     kw = dict(KW, starts=8)  # more than 4 starts deadlocked with LAPACK QR (dofjax._linalg)
     sharded = fit_focus_batch(targets, rgb, depth, cam, **kw)
     single = fit_focus_batch(targets, rgb, depth, cam, devices=jax.devices()[:1], **kw)
-    for name in ("focus_distance", "aperture_radius", "focus_distance_se", "loss", "steps"):
+    for name in ("focus_distance", "aperture_radius", "focus_distance_se",
+                 "focus_distance_se_tiles", "loss", "steps"):
         a, b = np.asarray(getattr(sharded, name)), np.asarray(getattr(single, name))
         assert a.shape == (3,), (name, a.shape)
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-300, err_msg=name)
