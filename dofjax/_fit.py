@@ -432,10 +432,13 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, ends=None, d
         return _residual_ul(param.fixed_values.at[free].set(ul_free), data, camera, model,
                             spec.loss, delta)
 
+    bfgs = spec.solver == "bfgs"
+
     def fn(y, args):
         ul_free = args[-1].to_ul(y, spec.free)[free]
         r, jac = value_and_jacobian(residual, ul_free, args)
-        return r, (jac, r)
+        # (BFGS's state keeps only the loss: the residual rides along with J)
+        return r, ((jac, r) if bfgs else jac)
 
     # float rounding of the model's pixels (a few eps of the image's rms), as a mean square
     eps = jnp.finfo(data.target.dtype).eps
@@ -448,12 +451,14 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, ends=None, d
     # The solver's state holds f at the last accepted y (= sol.value) and the aux (J) with it:
     # reusing them avoids more copies of the (large) model in the compiled program.
     f_info = sol.state.f_info
-    if spec.solver == "bfgs":
+    if bfgs:
         loss = 2.0 * f_info.f
+        jac, res = sol.aux
     else:
-        loss = jnp.sum(f_info.residual * f_info.residual)
+        res, jac = f_info.residual, sol.aux
+        loss = jnp.sum(res * res)
     out = (sol.value, loss, sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
-           sol.aux)
+           (jac, res))
     if ends is not None:  # and whether the screen stopped at a known minimum (`_ScreenLM`)
         out += (_ScreenLM.known(sol.value, options, sol.state) if screen
                 else jnp.asarray(False),)
@@ -1364,11 +1369,11 @@ def _message(raw: dict, fixed_names: tuple[str, ...], max_condition: float, thre
                      f"(delta SSE / s^2 = {dsse / s2:.3g} <= {threshold:g})")
     # (noise-only errors with s^2 floored as above: a noise-free fit's rounding residual is
     # correlated too, and is no evidence of a mismatch)
-    se = np.sqrt(np.maximum(np.diag(np.asarray(raw["cov"])), 0.0) * s2
-                 / max(float(raw["s2"]), 1e-300))
-    se_tiles = np.sqrt(np.maximum(np.diag(np.asarray(raw["cov_tiles"])), 0.0))
-    ratio = {PARAMS[i]: se_tiles[i] / se[i] for i in spec.free
-             if se[i] > 0 and np.isfinite(se[i]) and np.isfinite(se_tiles[i])}
+    raw_s2 = float(raw["s2"])
+    se = np.sqrt(np.maximum(np.diag(np.asarray(raw["cov"], np.float64)), 0.0))
+    se_tiles = np.sqrt(np.maximum(np.diag(np.asarray(raw["cov_tiles"], np.float64)), 0.0))
+    ratio = {PARAMS[i]: se_tiles[i] / (se[i] * math.sqrt(s2 / raw_s2)) for i in spec.free
+             if raw_s2 > 0 and 0 < se[i] < np.inf and np.isfinite(se_tiles[i])}
     worst = max(ratio, key=ratio.get, default=None)
     if worst is not None and ratio[worst] > _STRUCTURED_RATIO:
         notes.append(f"the residual is spatially structured (the tile-robust standard error of "
