@@ -520,3 +520,25 @@ def test_screen_stops_on_the_way_into_a_known_minimum():
     assert float(jnp.max(0.5 * jnp.abs(jnp.sin(y_in) - jnp.sin(y_min)))) < _fit._NEAR_END
     _, n_high, known_high = solve(y_min[None], jnp.array([1e3]))
     assert not known_high and n_high == n_free
+
+
+def test_parameter_with_a_huge_tile_robust_error_is_not_identifiable():
+    # the flags from a fit's raw arrays (host side): d = 10 with a tile-robust standard error
+    # of 6 (60 %) is not determined by the image, whatever the noise-only one says
+    from types import SimpleNamespace
+
+    from dofjax._fit import _message
+
+    raw = dict(pred_finite=True, frac=np.array([0.5, 0.5]), max_coc=5.0, condition=3.0,
+               s2=1e-4, rms_target=0.5, sse=1.0, sse_alt=np.inf, has_alt=False,
+               ul=np.array([0.1, np.log(0.05)]), ul_alt=np.array([0.1, np.log(0.05)]),
+               converged=True, cov=np.diag([0.5 ** 2, 1e-6 ** 2]),
+               cov_tiles=np.diag([6.0 ** 2, 1e-5 ** 2]))
+    spec = SimpleNamespace(free=(0, 1))
+    identifiable, ambiguous, message = _message(raw, (), 1e4, 4.0, spec)
+    assert not identifiable and not ambiguous
+    assert "focus_distance is not determined by this image" in message
+    assert "60%" in message and "spatially structured" in message
+    raw["cov_tiles"] = np.diag([0.6 ** 2, 1e-6 ** 2])  # 6 %: determined, and not structured
+    identifiable, _, message = _message(raw, (), 1e4, 4.0, spec)
+    assert identifiable and message == "ok", message
