@@ -1386,9 +1386,10 @@ def _message(raw: dict, fixed_names: tuple[str, ...], max_condition: float, thre
         notes.append(f"the residual is spatially structured (the tile-robust standard error of "
                      f"{worst} is {ratio[worst]:.3g}x the noise-only one): the model misses part "
                      "of the target, so use the *_se_tiles errors, and expect a bias beyond them")
-    values = (1.0 / float(raw["ul"][0]), math.exp(float(raw["ul"][1])))
+    u = float(raw["ul"][0])  # (0: focus at infinity, which the bounds may allow)
+    values = (1.0 / u if u != 0 else math.inf, math.exp(float(raw["ul"][1])))
     for i in spec.free:
-        rel = se_tiles[i] / abs(values[i]) if values[i] != 0 else np.inf
+        rel = se_tiles[i] / abs(values[i]) if values[i] != 0 else math.inf
         if identifiable and rel > _MAX_REL_SE:
             notes.append(f"{PARAMS[i]} is not determined by this image: its tile-robust "
                          f"standard error is {rel:.0%} of its value; not identifiable")

@@ -542,3 +542,6 @@ def test_parameter_with_a_huge_tile_robust_error_is_not_identifiable():
     raw["cov_tiles"] = np.diag([0.6 ** 2, 1e-6 ** 2])  # 6 %: determined, and not structured
     identifiable, _, message = _message(raw, (), 1e4, 4.0, spec)
     assert identifiable and message == "ok", message
+    raw["ul"] = np.array([0.0, np.log(0.05)])  # focus at infinity (u = 0): no division error
+    identifiable, _, message = _message(raw, (), 1e4, 4.0, spec)
+    assert identifiable and message == "ok", message
