@@ -537,12 +537,14 @@ def _uncertainty(ul, jac_ul, res, loss, data, spec):
     # tile scores g_t of the unit columns (both scalings of r and J by sqrt(n) cancel)
     h, w = data.target.shape[:2]
     t = _tile_size(h, w)
-    ph, pw = -h % t, -w % t
-    score = (unit * (res * jnp.sqrt(n))[:, None]).reshape(h, w, 3, p).sum(2)
-    score = jnp.pad(score, ((0, ph), (0, pw), (0, 0)))
-    score = score.reshape((h + ph) // t, t, (w + pw) // t, t, p).sum((1, 3)).reshape(-1, p)
-    used = jnp.pad(data.weight > 0, ((0, ph), (0, pw)))
-    tiles = jnp.sum(jnp.any(used.reshape((h + ph) // t, t, (w + pw) // t, t), axis=(1, 3)))
+
+    def tile_sums(x):  # over t x t tiles of the leading two axes, zero-padded to multiples of t
+        x = jnp.pad(x, ((0, -h % t), (0, -w % t)) + ((0, 0),) * (x.ndim - 2))
+        return _pool(x, t) * (t * t)
+
+    score = tile_sums((unit * (res * jnp.sqrt(n))[:, None]).reshape(h, w, 3, p).sum(2))
+    score = score.reshape(-1, p)
+    tiles = jnp.sum(tile_sums(data.weight) > 0)  # (weights are >= 0)
     meat = score.T @ score * safe_div(tiles, tiles - p, 0.0)
     # (a singular or flat J: infinite like the noise-only one)
     finite = jnp.all(jnp.isfinite(cov_n))

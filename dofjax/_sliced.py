@@ -386,7 +386,8 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     are the hats' constant slopes (`_level_slopes`, from the weights themselves) times each
     source's dq, which is a function of q (no tangent images are built or read), and the
     tangents run as separate arrays through the same blurs and compositing (a batched tangent
-    axis compiles to slower fusions on the CPU). Only the peeled layers' gates are differentiated by `jax.jvp`.
+    axis compiles to slower fusions on the CPU). Only the peeled layers' gates are
+    differentiated by `jax.jvp`.
     Same arguments as `sliced_defocus` (no `hidden`: its colours depend on the camera).
     """
     levels = _levels(float(window))
