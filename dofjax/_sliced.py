@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -243,15 +244,16 @@ def _spectra(kernels, h: int, w: int, dtype):
         kk = k.shape[0] // 2
         full[: k.shape[0], : k.shape[1]] = k
         out.append(np.fft.rfft2(np.roll(full, (-kk, -kk), axis=(0, 1))))
-    return np.stack(out).astype(np.complex128 if dtype == jnp.float64 else np.complex64), r, (hf, wf)
+    spectra = np.stack(out).astype(np.complex128 if dtype == jnp.float64 else np.complex64)
+    return spectra, r, (hf, wf)
 
 
 def _blur_fft(field, spectrum, r: int, grid):
-    """Zero-padded 'same' convolution of (C, h, w) by one FFT product on a padded grid."""
-    _, h, w = field.shape
+    """Zero-padded 'same' convolution of (..., h, w) by one FFT product on a padded grid."""
+    h, w = field.shape[-2:]
     hf, wf = grid
-    p = jnp.pad(field, ((0, 0), (r, hf - h - r), (r, wf - w - r)))
-    return jnp.fft.irfft2(jnp.fft.rfft2(p) * spectrum, s=grid)[:, r: r + h, r: r + w]
+    p = jnp.pad(field, ((0, 0),) * (field.ndim - 2) + ((r, hf - h - r), (r, wf - w - r)))
+    return jnp.fft.irfft2(jnp.fft.rfft2(p) * spectrum, s=grid)[..., r: r + h, r: r + w]
 
 
 def _level_weights(q, q_lv, p_first: bool, p_last: bool):
@@ -366,17 +368,18 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     levels = _levels(float(window))
     colour, q, alpha, q_r = _source_fields(rgb, depth, layers, camera, levels, reflection,
                                            reflection_depth, hidden)
-    out, _ = _composite(colour, q, alpha, reflection, q_r, None, window=float(window),
+    out, _, _ = _composite(colour, q, alpha, reflection, q_r, None, window=float(window),
                         blades=blades, rotation=float(rotation), ratio=float(ratio),
                         min_radius=float(min_radius))
     return out
 
 
 @functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio",
-                                             "min_radius"))
+                                             "min_radius", "residuals"))
 def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades=None,
                             rotation=0.0, ratio=1.0, reflection=None, reflection_depth=None,
-                            layers=None, min_radius: float = MIN_LOW_RADIUS):
+                            layers=None, min_radius: float = MIN_LOW_RADIUS,
+                            residuals: bool = False):
     """`sliced_defocus` and its derivatives w.r.t. focus_distance and aperture_radius:
     (out, (d out / d focus, d out / d aperture)), three (H, W, 3) images from one pass that
     carries both tangents beside the image.
@@ -389,67 +392,154 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     axis compiles to slower fusions on the CPU). Only the peeled layers' gates are
     differentiated by `jax.jvp`.
     Same arguments as `sliced_defocus` (no `hidden`: its colours depend on the camera).
+    `residuals`: also return what `sliced_defocus_adjoint` needs ((out, J, res)): the value
+    lane's per-slice occluders and blurred colour and coverage. Whatever of (J, res) the caller
+    does not use, XLA drops (forward mode keeps J, reverse mode res; tested by timing).
     """
     levels = _levels(float(window))
     dtype = rgb.dtype
     colour, q, alpha, q_r = _source_fields(rgb, depth, layers, camera, levels, reflection,
                                            reflection_depth, False)
-    # c = A k (1/z - 1/d): a change of d shifts every source's c alike (dc/dd = A k / d^2), one
-    # of A scales them (dc/dA = c / A). So each tangent's dq = 2 |c| dc is a scalar times q or
-    # |c|, a function of q itself (no tangent images are built or read), and the two passes
-    # give J's columns directly. At A = 0 every q is 0 and so is dq/dA = 2 A e|e| (q = A^2 e|e|).
-    a, d = jnp.asarray(camera.aperture_radius, dtype), jnp.asarray(camera.focus_distance, dtype)
-    shift = 2.0 * a * jnp.asarray(camera.pixel_scale, dtype) / (d * d)
-    scale = safe_div(2.0, a)
-    directions = (lambda q: shift * safe_sqrt(jnp.abs(q)), lambda q: scale * q)
+    directions = _directions(camera.focus_distance, camera.aperture_radius, camera.pixel_scale,
+                             dtype)
     d_alpha = [None, None]
+    raw = None
     if layers is not None:  # a peeled layer's gate depends on its and the visible surface's c
         raw = alpha.at[1:].set(jnp.asarray(layers.alpha[1:], dtype))
-
-        def gate(q):
-            i = _level_index_q(q, levels)
-            return raw.at[1:].multiply(_behind(i[1:], i[0]))
-
-        d_alpha = [jax.jvp(gate, (q,), (dq(q),))[1] for dq in directions]
-    out, jac = _composite(
+        d_alpha = [jax.jvp(functools.partial(_gate, raw, levels), (q,), (dq(q),))[1]
+                   for dq in directions]
+    out, jac, res = _composite(
         colour, q, alpha, reflection, q_r, list(zip(directions, d_alpha)), window=float(window),
-        blades=blades, rotation=float(rotation), ratio=float(ratio), min_radius=float(min_radius))
-    return out, tuple(jac)
+        blades=blades, rotation=float(rotation), ratio=float(ratio), min_radius=float(min_radius),
+        residuals=residuals)
+    if not residuals:
+        return out, tuple(jac)
+    return out, tuple(jac), {"composite": res, "q": q, "q_r": q_r, "raw": raw,
+                             "camera": (camera.focus_distance, camera.aperture_radius,
+                                        camera.pixel_scale)}
+
+
+@functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio",
+                                             "min_radius"))
+def sliced_defocus_adjoint(res, ct, *, window: float, blades=None, rotation=0.0, ratio=1.0,
+                           min_radius: float = MIN_LOW_RADIUS):
+    """J^T ct, for J the (focus, aperture) Jacobian of `sliced_defocus_jacobian` and ct an
+    (H, W, 3) cotangent of its image: the reverse-mode gradient, from the residuals `res` of
+    `sliced_defocus_jacobian(..., residuals=True)` (the same static arguments), by one pass of
+    `_composite_adjoint` (~1x a forward pass) instead of the two tangent lanes (~2x).
+
+    The transpose of exactly the tangents that pass writes out (the same masks and slopes):
+    (2,) array [d/d focus, d/d aperture] of sum(ct * out).
+    """
+    levels = _levels(float(window))
+    q, q_r, raw = res["q"], res["q_r"], res["raw"]
+    g_q, g_alpha, g_q_r = _composite_adjoint(
+        res["composite"], ct, window=float(window), blades=blades, rotation=float(rotation),
+        ratio=float(ratio), min_radius=float(min_radius), layered=raw is not None)
+    lay = _layout(float(window), blades, float(rotation), float(ratio), float(min_radius),
+                  ct.shape[0], ct.shape[1])
+    g_q = lay.crop(g_q)
+    if raw is not None:
+        g_q = g_q + jax.vjp(functools.partial(_gate, raw, levels), q)[1](lay.crop(g_alpha))[0]
+    out = []
+    for dq in _directions(*res["camera"], q.dtype):
+        total = jnp.sum(g_q * dq(q))
+        if q_r is not None:
+            total = total + jnp.sum(lay.crop(g_q_r) * dq(q_r))
+        out.append(total)
+    return jnp.stack(out)
+
+
+def _directions(focus_distance, aperture_radius, pixel_scale, dtype):
+    """Each source's tangent of q = sign(c) c^2 w.r.t. (focus, aperture), as functions of q.
+
+    c = A k (1/z - 1/d): a change of d shifts every source's c alike (dc/dd = A k / d^2), one
+    of A scales them (dc/dA = c / A). So each tangent's dq = 2 |c| dc is a scalar times q or
+    |c|, a function of q itself (no tangent images are built or read), and the two passes
+    give J's columns directly. At A = 0 every q is 0 and so is dq/dA = 2 A e|e| (q = A^2 e|e|).
+    """
+    a, d = jnp.asarray(aperture_radius, dtype), jnp.asarray(focus_distance, dtype)
+    shift = 2.0 * a * jnp.asarray(pixel_scale, dtype) / (d * d)
+    scale = safe_div(2.0, a)
+    return (lambda q: shift * safe_sqrt(jnp.abs(q)), lambda q: scale * q)
+
+
+def _gate(raw, levels, q):
+    """Coverage of the sources given their q: a peeled layer's (`raw`, k >= 1) enters only
+    behind the visible surface (`_behind`)."""
+    i = _level_index_q(q, levels)
+    return raw.at[1:].multiply(_behind(i[1:], i[0]))
+
+
+class _Layout(NamedTuple):
+    """The static layout of a `_composite` pass: levels, their resolution divisors and kernels,
+    the runs (one `lax.scan` each), each run's kernel size and blur border (coarse px; FFT runs
+    pad their own grid), the sources' zero border at full resolution that covers every run's
+    (each slice is built padded, so no blur pads its input; a per-run pad of the sources cost
+    ~3 ms a run in forward mode), and the image padded to a multiple of the coarsest divisor."""
+
+    levels: np.ndarray
+    factors: tuple[int, ...]
+    kernels: tuple[np.ndarray, ...]
+    runs: list[list[int]]
+    sizes: list[int]
+    borders: list[int]
+    border_px: int
+    height: int
+    width: int
+    hp: int
+    wp: int
+
+    def pad(self, x):
+        """Zero-pad the last two axes of an (..., height, width) source to the padded frame."""
+        if x is None:
+            return None
+        b = self.border_px
+        return jnp.pad(x, ((0, 0),) * (x.ndim - 2)
+                       + ((b, self.hp - self.height + b), (b, self.wp - self.width + b)))
+
+    def crop(self, x):
+        """The (..., height, width) image part of a padded-frame array (`pad`'s transpose)."""
+        b = self.border_px
+        return x[..., b: b + self.height, b: b + self.width]
+
+    def run_view(self, i_run: int):
+        """The run's offset into the padded frame: a run blurring with a border of b coarse px
+        at 1/s of the resolution reads the sources with a border of s b full-resolution px."""
+        return self.border_px - self.factors[self.runs[i_run][0]] * self.borders[i_run]
+
+
+def _layout(window, blades, rotation, ratio, min_radius, height, width) -> _Layout:
+    levels, factors, kernels = _plan(window, blades, rotation, ratio, min_radius)
+    s_max = max(factors)
+    runs = _runs(levels, factors, kernels)
+    sizes = [max(kernels[p].shape[0] for p in ps) for ps in runs]
+    borders = [k // 2 if k <= SHIFTED_MAX else 0 for k in sizes]
+    border_px = max(factors[ps[0]] * b for ps, b in zip(runs, borders))
+    return _Layout(levels, factors, kernels, runs, sizes, borders, border_px, height, width,
+                   -(-height // s_max) * s_max, -(-width // s_max) * s_max)
 
 
 def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, rotation, ratio,
-               min_radius):
+               min_radius, residuals: bool = False):
     """The slices of the sources (`_source_fields`), blurred and composited (module docstring).
 
     `tangents`: None, or one (dq, d alpha or None) per direction, dq a function giving each
     source's (and the mirror's) tangent of q from q: then the directional derivatives of the
-    image come out too ((out, [d out, ...]); else (out, [])).
+    image come out too ((out, [d out, ...], res); else (out, [], res)).
+    `residuals`: res is what `_composite_adjoint` needs of the value lane (else None).
     Every quantity is carried as lanes (value, then one tangent per direction): linear steps
     (resampling, blurs) act on each lane alike, products get the product rule.
     """
     _, _, height, width = colour.shape
     dtype = colour.dtype
-    levels, factors, kernels = _plan(window, blades, rotation, ratio, min_radius)
+    lay = _layout(window, blades, rotation, ratio, min_radius, height, width)
+    levels, factors, kernels, runs = lay.levels, lay.factors, lay.kernels, lay.runs
+    sizes, borders, hp, wp = lay.sizes, lay.borders, lay.hp, lay.wp
     tangents = tangents or []
     n_lanes = 1 + len(tangents)
     mirror = reflection is not None
-    s_max = max(factors)
-    # pad to a multiple of the coarsest divisor (no sources there; cropped at the end)
-    hp, wp = -(-height // s_max) * s_max, -(-width // s_max) * s_max
-
-    runs = _runs(levels, factors, kernels)
-    # the blur border of each run (coarse px; FFT runs pad their own grid), and the sources'
-    # zero border at full resolution that covers every run's (each slice is built padded, so
-    # no blur pads its input; a per-run pad of the sources cost ~3 ms a run in forward mode)
-    sizes = [max(kernels[p].shape[0] for p in ps) for ps in runs]
-    borders = [k // 2 if k <= SHIFTED_MAX else 0 for k in sizes]
-    border_px = max(factors[ps[0]] * b for ps, b in zip(runs, borders))
-
-    def pad(x):
-        if x is None:
-            return None
-        b = border_px
-        return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((b, hp - height + b), (b, wp - width + b)))
+    pad = lay.pad
 
     colour, q, alpha = pad(colour), pad(q), pad(alpha)
     d_q = [t[0] for t in tangents]
@@ -463,6 +553,8 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
     nc = 6 if mirror else 3  # accumulated colour channels: surfaces (+ reflection)
     q_lv = np.sign(levels) * levels * levels
     n = len(levels)
+    run_ys = []  # per run: the value lane's (hiding, rgb_b, cov_b) of every slice, or None
+    far_res = None
 
     def run(state, i_run):
         """Composite the levels of run `i_run` (one resolution) front to back onto `state`
@@ -503,7 +595,7 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
         def padded(x):
             if x is None:
                 return None
-            o = border_px - s * border
+            o = lay.run_view(i_run)
             return x[..., o: x.shape[-2] - o, o: x.shape[-1] - o]
 
         colour_p, q_p, alpha_p = padded(colour), padded(q), padded(alpha)
@@ -556,7 +648,7 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
                 if mirror:
                     lanes[-1].append(mirror_s * d_q[i](q_r_p) * refl_p)
             fields = [_downsample(x, s) for parts in lanes for x in parts]
-            return blur_composite(state, fields, kernel), None
+            return blur_composite(state, fields, kernel)
 
         def composite(state, blurred):
             """The blurred slice (a list of fields, `len(blurred) // n_lanes` per lane) seen
@@ -582,9 +674,13 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
                     d_colour_b = jnp.concatenate([d_colour_b, d_m[0]])
                 out.append((d_rgb + d_colour_b, d_cov + d_transmit * cov_b + transmit * d_cov_b,
                             d_next + d_occ_b, d_next + d_cov_b))
-            return tuple(out)
+            # what the adjoint (`_composite_adjoint`) needs of this slice: the value lane's
+            # occluders in front of it and its blurred colour and coverage
+            return tuple(out), ((hiding, rgb_b, cov_b) if residuals else None)
 
-        return jax.lax.scan(body, state, xs)[0]
+        state, ys = jax.lax.scan(body, state, xs)
+        run_ys.append(ys)
+        return state
 
     def zeros(s):
         z = jnp.zeros((hp // s, wp // s), dtype)
@@ -628,6 +724,7 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
             back = [x + _upsample(b, s_back // s) for x, b in zip(a, back)]
             s_back = s
         back = [_upsample(b, s_back // s_min) for b in back]
+        far_res = (state[0][2], back[0])
         # the far surfaces are seen through the fine runs; the reflection (channels 3:6) is not
         d_transmit = [jnp.where(inside, -lane[2], 0.0) for lane in state[1:]]
         new = []
@@ -652,4 +749,207 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
         douts.append(jnp.moveaxis(d_out, 0, -1))
     if mirror:
         out = out + acc_rgb[3:6, :height, :width]
-    return jnp.moveaxis(out, 0, -1), douts
+    res = None
+    if residuals:
+        res = {"sources": (colour, q, alpha, refl if mirror else None, q_r if mirror else None),
+               "ys": run_ys, "far": far_res, "final": (acc_rgb[:3], acc_cov)}
+    return jnp.moveaxis(out, 0, -1), douts, res
+
+
+def _box_transpose(g, s: int):
+    """Transpose of `_downsample` (the s x s box average): each coarse value spread over its
+    block, divided by s^2."""
+    if s == 1:
+        return g
+    return jnp.repeat(jnp.repeat(g, s, axis=-2), s, axis=-1) / (s * s)
+
+
+def _upsample_transpose(g, s: int):
+    """Transpose of `_upsample` by s (of the last two axes), by `jax.linear_transpose`."""
+    if s == 1:
+        return g
+    shape = g.shape[:-2] + (g.shape[-2] // s, g.shape[-1] // s)
+    up = jax.linear_transpose(lambda x: _upsample(x, s), jax.ShapeDtypeStruct(shape, g.dtype))
+    return up(g)[0]
+
+
+def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, layered: bool):
+    """The transpose of `_composite`'s tangent lanes: the cotangent `ct` (H, W, 3) of the image
+    taken back to the sources' tangents of q (and of coverage, `layered`, and of the mirror's q),
+    from the value lane's residuals `res` (`_composite(..., residuals=True)`).
+
+    Every step is the transpose of the corresponding tangent step in `_composite` (the same
+    masks: the clip's derivative is taken strictly inside (0, 1), the hats' slopes from
+    `_level_slopes`), in reverse order: the division by min(coverage, 1), the far runs seen
+    through the fine ones, each run's slices back to front (a reverse `lax.scan` carrying the
+    cotangents of (acc_rgb, acc_cov, hiding, hiding_next)), the blurs by their transposes (the
+    shifted sums with the point-reflected kernel; FFT runs by `jax.linear_transpose`), the box
+    averages and upsamplings by theirs. Costs about one forward pass: per slice it reads the
+    stored (hiding, blurred colour and coverage) and blurs five cotangent channels.
+
+    Returns (g_q (S, ...), g_alpha (S, ...) or None, g_q_r or None) in the padded source frame.
+    """
+    colour, q, alpha, refl, q_r = res["sources"]
+    mirror = refl is not None
+    height, width = ct.shape[0], ct.shape[1]
+    dtype = colour.dtype
+    lay = _layout(window, blades, rotation, ratio, min_radius, height, width)
+    levels, factors, kernels, runs = lay.levels, lay.factors, lay.kernels, lay.runs
+    hp, wp = lay.hp, lay.wp
+    nc = 6 if mirror else 3
+    q_lv = np.sign(levels) * levels * levels
+    n = len(levels)
+    each = range(colour.shape[0])
+    ct = jnp.moveaxis(ct, -1, 0).astype(dtype)
+
+    # out = acc_rgb[:3] / min(acc_cov, 1) (+ the reflection), cropped to the image
+    acc_rgb, acc_cov = res["final"]
+    cov = acc_cov[:height, :width]
+    den = jnp.minimum(cov, 1.0)
+    out = safe_div(acc_rgb[:, :height, :width], den)
+
+    def frame(x):  # the image's (..., height, width) in the (..., hp, wp) state frame
+        return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((0, hp - height), (0, wp - width)))
+
+    g_rgb = frame(jnp.concatenate([safe_div(ct, den)] + ([ct] if mirror else [])))
+    g_cov = frame(jnp.where(cov < 1.0, -jnp.sum(safe_div(ct * out, den), axis=0), 0.0))
+
+    g_q = jnp.zeros_like(q)
+    g_alpha = jnp.zeros_like(alpha) if layered else None
+    g_q_r = jnp.zeros_like(q_r) if mirror else None
+
+    def run_back(g_state, i_run):
+        """The slices of run `i_run`, back to front: the state's cotangents at the run's end ->
+        at its start; the sources' cotangents added to g_q, g_alpha, g_q_r."""
+        nonlocal g_q, g_alpha, g_q_r
+        ps, size, border = runs[i_run], lay.sizes[i_run], lay.borders[i_run]
+        s = factors[ps[0]]
+        h, w = hp // s, wp // s
+        o = lay.run_view(i_run)
+
+        def view(x):
+            return None if x is None else x[..., o: x.shape[-2] - o, o: x.shape[-1] - o]
+
+        colour_p, q_p, alpha_p, refl_p, q_r_p = map(view, (colour, q, alpha, refl, q_r))
+        if size <= SHIFTED_MAX:
+            # the shifted sums' transpose: the point-reflected kernel over the cotangent
+            # zero-padded by its radius plus the run's border (the fields carry that border)
+            k_sizes = sorted({kernels[p].shape[0] for p in ps})
+            ks = np.zeros((len(ps), size, size))
+            for i, p in enumerate(ps):
+                ok = (size - kernels[p].shape[0]) // 2
+                ks[i, ok: size - ok, ok: size - ok] = kernels[p][::-1, ::-1]
+            ks = (jnp.asarray(ks, dtype),
+                  jnp.asarray([k_sizes.index(kernels[p].shape[0]) for p in ps], jnp.int32))
+
+            def branch(gs, k, k_size):
+                r, ok = k_size // 2, (size - k_size) // 2
+                e = r + border
+                return _blur([jnp.pad(g, ((0, 0),) * (g.ndim - 2) + ((e, e), (e, e)))
+                              for g in gs], k[ok: size - ok, ok: size - ok], r)
+
+            branches = [functools.partial(branch, k_size=k_size) for k_size in k_sizes]
+
+            def blur_t(gs, k):
+                k, which = k
+                if len(branches) == 1:
+                    return branches[0](gs, k)
+                return jax.lax.switch(which, branches, gs, k)
+        else:
+            ks, r, grid = _spectra([kernels[p] for p in ps], h, w, dtype)
+            ks = jnp.asarray(ks)
+
+            def blur_t(gs, k):
+                return [jax.linear_transpose(lambda f: _blur_fft(f, k, r, grid), g)(g)[0]
+                        for g in gs]
+
+        q3 = np.array([(q_lv[max(p - 1, 0)] + (p == 0), q_lv[p],
+                        q_lv[min(p + 1, n - 1)] - (p == n - 1)) for p in ps])
+        xs = (jnp.asarray(q3, dtype), jnp.asarray([p == 0 for p in ps]),
+              jnp.asarray([p == n - 1 for p in ps]), ks, res["ys"][i_run])
+        acc = (jnp.zeros_like(q_p), None if alpha_p is None or not layered
+               else jnp.zeros_like(alpha_p), None if q_r_p is None else jnp.zeros_like(q_r_p))
+
+        def body(carry, x):
+            (g_rgb, g_cov, g_hid, g_next), (a_q, a_alpha, a_q_r) = carry
+            q3, first, last, kernel, (hiding, rgb_b, cov_b) = x
+            q3 = (q3[0], q3[1], q3[2])
+            seen = 1.0 - hiding
+            transmit = jnp.clip(seen, 0.0, 1.0)
+            inside = (seen > 0.0) & (seen < 1.0)
+            # the composite step: cotangents of the blurred (rgb, cov, occ[, mirror]) and of
+            # the state before the slice
+            g_t = jnp.sum(g_rgb[:3] * rgb_b, axis=0) + g_cov * cov_b
+            g_blurred = [transmit * g_rgb[:3], transmit * g_cov + g_next, g_hid]
+            if mirror:
+                g_blurred.append(g_rgb[3:6])
+            g_state = (g_rgb, g_cov, -jnp.where(inside, g_t, 0.0), g_hid + g_next)
+            g_f = [_box_transpose(g, s) for g in blur_t(g_blurred, kernel)]
+            # the slice's fields from its sources (`slice_parts` of the tangent weights)
+            front_w, back_w = _level_weights(q_p, q3, first, last)
+            front_s, back_s = _level_slopes(front_w, back_w, q3)
+            g_w = jnp.stack([jnp.sum(g_f[0] * colour_p[k], axis=0) for k in each]) + g_f[1]
+            dq_w, dq_occ = front_s + back_s, front_s + 2.0 * back_w * back_s
+            if a_alpha is not None:
+                a_q = a_q + alpha_p * (dq_w * g_w + dq_occ * g_f[2])
+                a_alpha = a_alpha + (front_w + back_w) * g_w + (front_w + back_w * back_w) * g_f[2]
+            else:
+                a_q = a_q + dq_w * g_w + dq_occ * g_f[2]
+            if mirror:
+                mirror_s = sum(_level_slopes(*_level_weights(q_r_p, q3, first, last), q3))
+                a_q_r = a_q_r + mirror_s * jnp.sum(g_f[3] * refl_p, axis=0)
+            return (g_state, (a_q, a_alpha, a_q_r)), None
+
+        (g_state, (a_q, a_alpha, a_q_r)), _ = jax.lax.scan(body, (g_state, acc), xs,
+                                                           reverse=True)
+
+        def unview(x):
+            return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((o, o), (o, o)))
+
+        g_q = g_q + unview(a_q)
+        if a_alpha is not None:
+            g_alpha = g_alpha + unview(a_alpha)
+        if a_q_r is not None:
+            g_q_r = g_q_r + unview(a_q_r)
+        return g_state
+
+    s_min = min(factors)
+    last_fine = max(i for i, ps in enumerate(runs) if factors[ps[0]] == s_min)
+    zero = jnp.zeros((hp, wp), dtype)
+    g_hid, g_next = zero, zero
+    if res["far"] is not None:
+        # acc += concat(transmit * back[:3], back[3:nc]), acc_cov += transmit * back[nc], with
+        # transmit = clip(1 - hiding of the fine runs)
+        hid_f, back = res["far"]
+        seen = 1.0 - hid_f
+        transmit = jnp.clip(seen, 0.0, 1.0)
+        g_t = jnp.sum(g_rgb[:3] * back[:3], axis=0) + g_cov * back[nc]
+        g_hid = -jnp.where((seen > 0.0) & (seen < 1.0), g_t, 0.0)
+        g_b = jnp.concatenate([transmit * g_rgb[:3], g_rgb[3:nc], (transmit * g_cov)[None]])
+        far_runs = list(range(last_fine + 1, len(runs)))
+        fs = [factors[runs[i][0]] for i in far_runs]
+        # back = far[0] + up(far[1] + up(... far[-1])), upsampled to full resolution
+        g_far = []
+        g_b = _upsample_transpose(g_b, fs[0] // s_min)
+        for j in range(len(far_runs)):
+            g_far.append(g_b)
+            if j + 1 < len(far_runs):
+                g_b = _upsample_transpose(g_b, fs[j + 1] // fs[j])
+        # each far run starts from the previous one's occluders (box-averaged to its grid), the
+        # first from (0, hiding_next - hiding) of the fine runs
+        g_end = (jnp.zeros_like(g_far[-1][nc]),) * 2
+        for j in reversed(range(len(far_runs))):
+            g_state = run_back((g_far[j][:nc], g_far[j][nc]) + g_end, far_runs[j])
+            r = fs[j] // (fs[j - 1] if j > 0 else s_min)
+            g_end = (_box_transpose(g_state[2], r), _box_transpose(g_state[3], r))
+        g_hid, g_next = g_hid - g_end[1], g_end[1]
+
+    g_state = (g_rgb, g_cov, g_hid, g_next)
+    for i_run in reversed(range(last_fine + 1)):
+        g_state = run_back(g_state, i_run)
+        if i_run > 0:
+            r = factors[runs[i_run - 1][0]] // factors[runs[i_run][0]]
+            if r > 1:  # the state was upsampled into this run: (acc_rgb, acc_cov, hid, next)
+                g = _upsample_transpose(jnp.concatenate([g_state[0], jnp.stack(g_state[1:])]), r)
+                g_state = (g[:nc],) + tuple(g[nc:])
+    return g_q, g_alpha, g_q_r
