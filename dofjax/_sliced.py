@@ -1,4 +1,4 @@
-"""Sliced defocus: the scatter model of DESIGN.md section 3, built for speed, fast compiles and fitting.
+"""Sliced defocus: DESIGN.md section 3's scatter model, built for speed, fast compiles and fitting.
 
 1. Each source pixel (of the image, of every peeled layer, and of the mirror layer) has a signed
    CoC c = A k (1/z - 1/d). The signed level magnitudes `_kernels.MAGNITUDES` up to the window
@@ -442,10 +442,11 @@ def sliced_defocus_adjoint(res, ct, *, window: float, blades=None, rotation=0.0,
     if raw is not None:
         g_q = g_q + jax.vjp(functools.partial(_gate, raw, levels), q)[1](lay.crop(g_alpha))[0]
     out = []
-    for dq in _directions(*res["camera"], q.dtype):
-        total = jnp.sum(g_q * dq(q))
+    wide = jnp.result_type(float)  # the sums over pixels cancel (energy is conserved): float64
+    for dq in _directions(*res["camera"], q.dtype):  # under x64 even for a float32 image
+        total = jnp.sum(g_q * dq(q), dtype=wide)
         if q_r is not None:
-            total = total + jnp.sum(lay.crop(g_q_r) * dq(q_r))
+            total = total + jnp.sum(lay.crop(g_q_r) * dq(q_r), dtype=wide)
         out.append(total)
     return jnp.stack(out)
 
@@ -648,7 +649,13 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
                 if mirror:
                     lanes[-1].append(mirror_s * d_q[i](q_r_p) * refl_p)
             fields = [_downsample(x, s) for parts in lanes for x in parts]
-            return blur_composite(state, fields, kernel)
+            state, ys = blur_composite(state, fields, kernel)
+            if residuals:  # does any source (or the mirror) reach this slice?
+                has = jnp.any(sum(front_w + back_w) > 0.0)
+                if mirror:
+                    has = has | jnp.any(sum(mirror_w) > 0.0)
+                ys = (ys, has)
+            return state, ys
 
         def composite(state, blurred):
             """The blurred slice (a list of fields, `len(blurred) // n_lanes` per lane) seen
@@ -765,12 +772,41 @@ def _box_transpose(g, s: int):
 
 
 def _upsample_transpose(g, s: int):
-    """Transpose of `_upsample` by s (of the last two axes), by `jax.linear_transpose`."""
+    """Transpose of `_upsample` by s (of the last two axes): fine sample s i + k gave weight
+    1 - |d_k| to coarse i and |d_k| to its neighbour on d_k's side (the edge sample itself at
+    the ends), so coarse j collects its own phases and its neighbours' (slices and adds: the
+    transpose JAX derives from the forward's pads is ~3x slower)."""
     if s == 1:
         return g
-    shape = g.shape[:-2] + (g.shape[-2] // s, g.shape[-1] // s)
-    up = jax.linear_transpose(lambda x: _upsample(x, s), jax.ShapeDtypeStruct(shape, g.dtype))
-    return up(g)[0]
+    for axis in (g.ndim - 2, g.ndim - 1):
+        n = g.shape[axis] // s
+        phases = g.reshape(g.shape[:axis] + (n, s) + g.shape[axis + 1:])
+        d = [(k + 0.5) / s - 0.5 for k in range(s)]
+        take = functools.partial(jax.lax.index_in_dim, phases, axis=axis + 1, keepdims=False)
+        mid = sum(take(k) * (1.0 - abs(d[k])) for k in range(s))
+        to_prev = sum(take(k) * abs(d[k]) for k in range(s) if d[k] < 0)  # -> coarse i - 1
+        to_next = sum(take(k) * abs(d[k]) for k in range(s) if d[k] > 0)  # -> coarse i + 1
+        if n == 1:
+            g = mid + to_prev + to_next
+            continue
+
+        def part(x, a, b):
+            return jax.lax.slice_in_dim(x, a, b, axis=axis)
+
+        zero = jnp.zeros_like(part(mid, 0, 1))
+        g = (mid
+             + jnp.concatenate([part(to_prev, 0, 1) + part(to_prev, 1, 2), part(to_prev, 2, n),
+                                zero], axis=axis)
+             + jnp.concatenate([zero, part(to_next, 0, n - 2),
+                                part(to_next, n - 2, n - 1) + part(to_next, n - 1, n)], axis=axis))
+    return g
+
+
+def _channel_sum(x):
+    """Sum over the leading (colour) axis, written out: XLA CPU hands a fused reduction over a
+    leading axis of 3 to a library kernel ~10x slower than the adds (the adjoint took 150 ms
+    instead of ~50 at 512 x 512)."""
+    return functools.reduce(jnp.add, [x[i] for i in range(x.shape[0])])
 
 
 def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, layered: bool):
@@ -812,7 +848,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((0, hp - height), (0, wp - width)))
 
     g_rgb = frame(jnp.concatenate([safe_div(ct, den)] + ([ct] if mirror else [])))
-    g_cov = frame(jnp.where(cov < 1.0, -jnp.sum(safe_div(ct * out, den), axis=0), 0.0))
+    g_cov = frame(jnp.where(cov < 1.0, -_channel_sum(safe_div(ct * out, den)), 0.0))
 
     g_q = jnp.zeros_like(q)
     g_alpha = jnp.zeros_like(alpha) if layered else None
@@ -831,6 +867,14 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
             return None if x is None else x[..., o: x.shape[-2] - o, o: x.shape[-1] - o]
 
         colour_p, q_p, alpha_p, refl_p, q_r_p = map(view, (colour, q, alpha, refl, q_r))
+
+        def no_sources(gs, k):
+            # a slice no source reaches: its fields are zero, and so are their cotangents'
+            # contributions (the branch index is a runtime value, so the blurs' transposes stay
+            # inside `lax.switch` and come out materialised at the coarse resolution; fused into
+            # the full-resolution step below, XLA repeated them for every fine pixel)
+            return [jnp.zeros(g.shape[:-2] + (g.shape[-2] + 2 * border, g.shape[-1] + 2 * border),
+                              g.dtype) for g in gs]
         if size <= SHIFTED_MAX:
             # the shifted sums' transpose: the point-reflected kernel over the cotangent
             # zero-padded by its radius plus the run's border (the fields carry that border)
@@ -850,18 +894,20 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
 
             branches = [functools.partial(branch, k_size=k_size) for k_size in k_sizes]
 
-            def blur_t(gs, k):
+            def blur_t(gs, k, has):
                 k, which = k
-                if len(branches) == 1:
-                    return branches[0](gs, k)
-                return jax.lax.switch(which, branches, gs, k)
+                return jax.lax.switch(jnp.where(has, which, len(branches)),
+                                      branches + [no_sources], gs, k)
         else:
             ks, r, grid = _spectra([kernels[p] for p in ps], h, w, dtype)
             ks = jnp.asarray(ks)
 
-            def blur_t(gs, k):
+            def fft_t(gs, k):
                 return [jax.linear_transpose(lambda f: _blur_fft(f, k, r, grid), g)(g)[0]
                         for g in gs]
+
+            def blur_t(gs, k, has):
+                return jax.lax.cond(has, fft_t, no_sources, gs, k)
 
         q3 = np.array([(q_lv[max(p - 1, 0)] + (p == 0), q_lv[p],
                         q_lv[min(p + 1, n - 1)] - (p == n - 1)) for p in ps])
@@ -871,24 +917,30 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
                else jnp.zeros_like(alpha_p), None if q_r_p is None else jnp.zeros_like(q_r_p))
 
         def body(carry, x):
-            (g_rgb, g_cov, g_hid, g_next), (a_q, a_alpha, a_q_r) = carry
-            q3, first, last, kernel, (hiding, rgb_b, cov_b) = x
-            q3 = (q3[0], q3[1], q3[2])
+            """One slice, back to front: the composite step and the blur transposed (the
+            state's cotangents after the slice -> before it, and the slice's fields'), then the
+            fields' construction from the sources (`slice_parts` of the tangent weights)."""
+            (g_rgb, g_cov, g_hid, g_next), acc = carry
+            _, _, _, kernel, ((hiding, rgb_b, cov_b), has) = x
             seen = 1.0 - hiding
             transmit = jnp.clip(seen, 0.0, 1.0)
-            inside = (seen > 0.0) & (seen < 1.0)
-            # the composite step: cotangents of the blurred (rgb, cov, occ[, mirror]) and of
-            # the state before the slice
-            g_t = jnp.sum(g_rgb[:3] * rgb_b, axis=0) + g_cov * cov_b
+            g_t = _channel_sum(g_rgb[:3] * rgb_b) + g_cov * cov_b
             g_blurred = [transmit * g_rgb[:3], transmit * g_cov + g_next, g_hid]
             if mirror:
                 g_blurred.append(g_rgb[3:6])
-            g_state = (g_rgb, g_cov, -jnp.where(inside, g_t, 0.0), g_hid + g_next)
-            g_f = [_box_transpose(g, s) for g in blur_t(g_blurred, kernel)]
-            # the slice's fields from its sources (`slice_parts` of the tangent weights)
+            g_state = (g_rgb, g_cov, -jnp.where((seen > 0.0) & (seen < 1.0), g_t, 0.0),
+                       g_hid + g_next)
+            g_f = blur_t(g_blurred, kernel, has)
+            acc = jax.lax.cond(has, accumulate, lambda acc, x, g_f: acc, acc, x, g_f)
+            return (g_state, acc), None
+
+        def accumulate(acc, x, g_f):
+            a_q, a_alpha, a_q_r = acc
+            q3, first, last = (x[0][0], x[0][1], x[0][2]), x[1], x[2]
+            g_f = [_box_transpose(g, s) for g in g_f]
             front_w, back_w = _level_weights(q_p, q3, first, last)
             front_s, back_s = _level_slopes(front_w, back_w, q3)
-            g_w = jnp.stack([jnp.sum(g_f[0] * colour_p[k], axis=0) for k in each]) + g_f[1]
+            g_w = jnp.stack([_channel_sum(g_f[0] * colour_p[k]) for k in each]) + g_f[1]
             dq_w, dq_occ = front_s + back_s, front_s + 2.0 * back_w * back_s
             if a_alpha is not None:
                 a_q = a_q + alpha_p * (dq_w * g_w + dq_occ * g_f[2])
@@ -897,8 +949,8 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
                 a_q = a_q + dq_w * g_w + dq_occ * g_f[2]
             if mirror:
                 mirror_s = sum(_level_slopes(*_level_weights(q_r_p, q3, first, last), q3))
-                a_q_r = a_q_r + mirror_s * jnp.sum(g_f[3] * refl_p, axis=0)
-            return (g_state, (a_q, a_alpha, a_q_r)), None
+                a_q_r = a_q_r + mirror_s * _channel_sum(g_f[3] * refl_p)
+            return a_q, a_alpha, a_q_r
 
         (g_state, (a_q, a_alpha, a_q_r)), _ = jax.lax.scan(body, (g_state, acc), xs,
                                                            reverse=True)
@@ -923,23 +975,23 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         hid_f, back = res["far"]
         seen = 1.0 - hid_f
         transmit = jnp.clip(seen, 0.0, 1.0)
-        g_t = jnp.sum(g_rgb[:3] * back[:3], axis=0) + g_cov * back[nc]
+        g_t = _channel_sum(g_rgb[:3] * back[:3]) + g_cov * back[nc]
         g_hid = -jnp.where((seen > 0.0) & (seen < 1.0), g_t, 0.0)
-        g_b = jnp.concatenate([transmit * g_rgb[:3], g_rgb[3:nc], (transmit * g_cov)[None]])
+        g_b = (jnp.concatenate([transmit * g_rgb[:3], g_rgb[3:nc]]), transmit * g_cov)
         far_runs = list(range(last_fine + 1, len(runs)))
         fs = [factors[runs[i][0]] for i in far_runs]
         # back = far[0] + up(far[1] + up(... far[-1])), upsampled to full resolution
         g_far = []
-        g_b = _upsample_transpose(g_b, fs[0] // s_min)
+        g_b = tuple(_upsample_transpose(g, fs[0] // s_min) for g in g_b)
         for j in range(len(far_runs)):
             g_far.append(g_b)
             if j + 1 < len(far_runs):
-                g_b = _upsample_transpose(g_b, fs[j + 1] // fs[j])
+                g_b = tuple(_upsample_transpose(g, fs[j + 1] // fs[j]) for g in g_b)
         # each far run starts from the previous one's occluders (box-averaged to its grid), the
         # first from (0, hiding_next - hiding) of the fine runs
-        g_end = (jnp.zeros_like(g_far[-1][nc]),) * 2
+        g_end = (jnp.zeros_like(g_far[-1][1]),) * 2
         for j in reversed(range(len(far_runs))):
-            g_state = run_back((g_far[j][:nc], g_far[j][nc]) + g_end, far_runs[j])
+            g_state = run_back(g_far[j] + g_end, far_runs[j])
             r = fs[j] // (fs[j - 1] if j > 0 else s_min)
             g_end = (_box_transpose(g_state[2], r), _box_transpose(g_state[3], r))
         g_hid, g_next = g_hid - g_end[1], g_end[1]
@@ -950,6 +1002,5 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         if i_run > 0:
             r = factors[runs[i_run - 1][0]] // factors[runs[i_run][0]]
             if r > 1:  # the state was upsampled into this run: (acc_rgb, acc_cov, hid, next)
-                g = _upsample_transpose(jnp.concatenate([g_state[0], jnp.stack(g_state[1:])]), r)
-                g_state = (g[:nc],) + tuple(g[nc:])
+                g_state = tuple(_upsample_transpose(g, r) for g in g_state)
     return g_q, g_alpha, g_q_r
