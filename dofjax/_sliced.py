@@ -436,17 +436,14 @@ def sliced_defocus_adjoint(res, ct, *, window: float, blades=None, rotation=0.0,
     g_q, g_alpha, g_q_r = _composite_adjoint(
         res["composite"], ct, window=float(window), blades=blades, rotation=float(rotation),
         ratio=float(ratio), min_radius=float(min_radius), layered=raw is not None)
-    lay = _layout(float(window), blades, float(rotation), float(ratio), float(min_radius),
-                  ct.shape[0], ct.shape[1])
-    g_q = lay.crop(g_q)
     if raw is not None:
-        g_q = g_q + jax.vjp(functools.partial(_gate, raw, levels), q)[1](lay.crop(g_alpha))[0]
+        g_q = g_q + jax.vjp(functools.partial(_gate, raw, levels), q)[1](g_alpha)[0]
     out = []
     wide = jnp.result_type(float)  # the sums over pixels cancel (energy is conserved): float64
     for dq in _directions(*res["camera"], q.dtype):  # under x64 even for a float32 image
         total = jnp.sum(g_q * dq(q), dtype=wide)
         if q_r is not None:
-            total = total + jnp.sum(lay.crop(g_q_r) * dq(q_r), dtype=wide)
+            total = total + jnp.sum(g_q_r * dq(q_r), dtype=wide)
         out.append(total)
     return jnp.stack(out)
 
@@ -498,11 +495,6 @@ class _Layout(NamedTuple):
         b = self.border_px
         return jnp.pad(x, ((0, 0),) * (x.ndim - 2)
                        + ((b, self.hp - self.height + b), (b, self.wp - self.width + b)))
-
-    def crop(self, x):
-        """The (..., height, width) image part of a padded-frame array (`pad`'s transpose)."""
-        b = self.border_px
-        return x[..., b: b + self.height, b: b + self.width]
 
     def run_view(self, i_run: int):
         """The run's offset into the padded frame: a run blurring with a border of b coarse px
@@ -823,7 +815,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
     averages and upsamplings by theirs. Costs about one forward pass: per slice it reads the
     stored (hiding, blurred colour and coverage) and blurs five cotangent channels.
 
-    Returns (g_q (S, ...), g_alpha (S, ...) or None, g_q_r or None) in the padded source frame.
+    Returns (g_q (S, H, W), g_alpha (S, H, W) or None, g_q_r (H, W) or None).
     """
     colour, q, alpha, refl, q_r = res["sources"]
     mirror = refl is not None
@@ -850,9 +842,11 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
     g_rgb = frame(jnp.concatenate([safe_div(ct, den)] + ([ct] if mirror else [])))
     g_cov = frame(jnp.where(cov < 1.0, -_channel_sum(safe_div(ct * out, den)), 0.0))
 
-    g_q = jnp.zeros_like(q)
-    g_alpha = jnp.zeros_like(alpha) if layered else None
-    g_q_r = jnp.zeros_like(q_r) if mirror else None
+    # the sources' cotangents, in the image frame (a run's slices reach the padded frame's
+    # border too, but no source is there)
+    g_q = jnp.zeros(q.shape[:-2] + (height, width), dtype)
+    g_alpha = jnp.zeros_like(g_q) if layered else None
+    g_q_r = jnp.zeros((height, width), dtype) if mirror else None
 
     def run_back(g_state, i_run):
         """The slices of run `i_run`, back to front: the state's cotangents at the run's end ->
@@ -955,14 +949,15 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         (g_state, (a_q, a_alpha, a_q_r)), _ = jax.lax.scan(body, (g_state, acc), xs,
                                                            reverse=True)
 
-        def unview(x):
-            return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((o, o), (o, o)))
+        def image(x):  # the image's part of the run's view of the padded frame
+            e = lay.border_px - o
+            return x[..., e: e + height, e: e + width]
 
-        g_q = g_q + unview(a_q)
+        g_q = g_q + image(a_q)
         if a_alpha is not None:
-            g_alpha = g_alpha + unview(a_alpha)
+            g_alpha = g_alpha + image(a_alpha)
         if a_q_r is not None:
-            g_q_r = g_q_r + unview(a_q_r)
+            g_q_r = g_q_r + image(a_q_r)
         return g_state
 
     s_min = min(factors)
