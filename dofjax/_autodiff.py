@@ -32,8 +32,9 @@ def dense_jacobian(fn, y, args, jac_fn=None, adjoint=None):
     (out, J, res) and `adjoint(res, ct)` is J^T ct (shape y.shape) from the residuals `res`, and
     `J @ dy` is a primitive whose transpose calls it: reverse mode costs the pass that makes
     `res` plus the adjoint, and XLA drops J from it (nothing uses J there), while forward mode
-    uses J and XLA drops `res`. Under `jax.vmap` the product is plain `J @ dy` (so a batched
-    reverse mode transposes that, through J).
+    uses J and XLA drops `res`. Batched by `jax.vmap` the product becomes plain `J @ dy`: a
+    gradient of a vmapped model transposes that (through J), while a vmapped gradient
+    (`vmap(grad(...))`) still runs the adjoint, batched.
     """
     return _dense_jacobian(fn, jac_fn or functools.partial(_jacfwd, fn), adjoint, y, args)
 

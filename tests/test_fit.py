@@ -98,6 +98,47 @@ def test_dense_jacobian_residual_derivatives():
             mode(lambda a: jnp.sum(residual(y, a) ** 2))(args), rtol=1e-10)
 
 
+def test_dense_jacobian_routes_reverse_mode_through_the_adjoint():
+    # With `adjoint`, J @ dy is a primitive: forward mode (jvp, jacfwd) and jax.vmap use J,
+    # reverse mode (grad, vjp, jacrev) calls adjoint(res, ct) instead. A toy model whose
+    # adjoint is deliberately twice J^T shows which one each transformation used.
+    from dofjax._autodiff import dense_jacobian
+
+    rng = np.random.default_rng(3)
+    a, b = jnp.asarray(rng.random((5, 4))), jnp.asarray(rng.random((5, 4)))
+
+    def fn(y, args):
+        return y[0] * a + y[1] ** 2 * b + args
+
+    def jac_fn(y, args):
+        return fn(y, args), (a, 2.0 * y[1] * b), {"b": b, "y1": y[1]}
+
+    def adjoint(res, ct):  # twice the true J^T ct
+        return 2.0 * jnp.stack([jnp.sum(a * ct), jnp.sum(2.0 * res["y1"] * res["b"] * ct)])
+
+    def f(y):
+        return dense_jacobian(fn, y, jnp.zeros((5, 4)), jac_fn, adjoint=adjoint)
+
+    y = jnp.array([0.7, 1.3])
+    jac = jnp.stack([a, 2.0 * y[1] * b], axis=-1)
+    w = jnp.asarray(rng.random((5, 4)))
+    np.testing.assert_allclose(jax.jacfwd(f)(y), jac, rtol=1e-14)
+    np.testing.assert_allclose(jax.jvp(f, (y,), (jnp.array([1.0, -2.0]),))[1],
+                               jac @ jnp.array([1.0, -2.0]), rtol=1e-14)
+    np.testing.assert_allclose(jax.grad(lambda y: jnp.sum(w * f(y)))(y),
+                               2.0 * jnp.einsum("hw,hwk->k", w, jac), rtol=1e-14)
+    np.testing.assert_allclose(jax.jit(jax.jacrev(f))(y), 2.0 * jac, rtol=1e-14)
+    # a gradient taken inside vmap transposes the primitive (batched adjoint); one taken of a
+    # vmapped model sees the product after batching (plain J @ dy), so transposes through J
+    np.testing.assert_allclose(jax.vmap(jax.grad(lambda y: jnp.sum(w * f(y))))(y[None])[0],
+                               2.0 * jnp.einsum("hw,hwk->k", w, jac), rtol=1e-14)
+    np.testing.assert_allclose(jax.grad(lambda y: jnp.sum(w * jax.vmap(f)(y[None])[0]))(y),
+                               jnp.einsum("hw,hwk->k", w, jac), rtol=1e-14)
+    # second order: forward over the adjoint (its residuals depend on y)
+    np.testing.assert_allclose(jax.jacfwd(jax.grad(lambda y: jnp.sum(w * f(y))))(y)[1, 1],
+                               2.0 * 2.0 * jnp.sum(w * b), rtol=1e-14)
+
+
 def test_value_and_jacobian_derivatives():
     # The solvers' residual returns the Jacobian it built as its aux (the covariance reuses
     # it): value, Jacobian and first derivatives must equal plain autodiff; the second

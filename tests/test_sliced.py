@@ -269,9 +269,9 @@ def test_adjoint_is_the_transpose_of_the_jacobian(aperture, window, extras, min_
 
 def test_reverse_mode_through_the_adjoint_matches_forward_mode():
     # defocus_fn's reverse mode goes through the adjoint (a primitive whose transpose it is),
-    # its forward mode through J: a gradient, a Jacobian-vector product, a gradient under
-    # jax.vmap (the primitive's batching rule: plain J @ dy there) and a reverse-mode Jacobian
-    # (jax.jacrev: the adjoint under vmap) must all agree
+    # its forward mode through J: a gradient, a vmapped gradient (the adjoint batched) and a
+    # reverse-mode Jacobian (jax.jacrev: the adjoint under vmap over cotangents) must agree
+    # with the Jacobian
     n = 32
     cam = camera(width=n, height=n, aperture_radius=0.2)
     rgb, depth, kw = _random_sources(n, ("layers", "mirror"), cam, 15)
