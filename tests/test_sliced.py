@@ -189,21 +189,7 @@ def test_written_out_jacobian_equals_autodiff(aperture, window, extras):
     # FFT-blurred levels (window 24), and at aperture 0
     n = 40
     cam = camera(width=n, height=n, aperture_radius=aperture)
-    rng = np.random.default_rng(11)
-    rgb = rng.random((n, n, 3))
-    depth = rng.uniform(0.8, 8.0, (n, n))
-    depth[:5] = np.inf
-    depth[10:20, 10:30] = cam.focus_distance  # on the focal plane
-    kw = {}
-    if "layers" in extras:
-        d1 = depth + rng.uniform(0.5, 6.0, (n, n))
-        kw["layers"] = dofjax.Layers(
-            rgb=np.stack([rgb, rng.random((n, n, 3)), rng.random((n, n, 3))]),
-            depth=np.stack([depth, d1, d1 + rng.uniform(0.5, 6.0, (n, n))]),
-            alpha=np.stack([np.ones((n, n)), rng.uniform(0, 1, (n, n)), np.ones((n, n))]))
-    if "mirror" in extras:
-        kw.update(reflection=0.3 * rng.random((n, n, 3)),
-                  reflection_depth=rng.uniform(1.0, 9.0, (n, n)))
+    rgb, depth, kw = _random_sources(n, extras, cam, 11)
 
     def f(p):
         return sliced_defocus(rgb, depth, cam.replace(focus_distance=p[0], aperture_radius=p[1]),
@@ -220,6 +206,8 @@ def test_written_out_jacobian_equals_autodiff(aperture, window, extras):
 
 
 def _random_sources(n, extras, cam, seed):
+    """Random colours and depths (some at infinity, a patch on the focal plane), with
+    `extras` "layers" (two peeled layers behind) and/or "mirror" (a reflection layer)."""
     rng = np.random.default_rng(seed)
     rgb = rng.random((n, n, 3))
     depth = rng.uniform(0.8, 8.0, (n, n))
