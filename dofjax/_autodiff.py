@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -40,9 +42,33 @@ def dense_jacobian(fn, y, args, jac_fn=None, adjoint=None):
 
 
 def _jacfwd(fn, y, args):
-    """(fn(y, args), d fn / d y) by one `jax.jacfwd`."""
-    jac, out = jax.jacfwd(lambda y_: (fn(y_, args),) * 2, has_aux=True)(y)
+    """(fn(y, args), d fn / d y) by one `jax.jacfwd`, traced `forward_only`."""
+    with forward_only():
+        jac, out = jax.jacfwd(lambda y_: (fn(y_, args),) * 2, has_aux=True)(y)
     return out, jac
+
+
+_trace_state = threading.local()
+
+
+@contextlib.contextmanager
+def forward_only():
+    """While tracing inside this context, the models traced are differentiated in forward mode
+    only (a Jacobian built by `jax.jacfwd`), so they need not prepare for reverse mode:
+    `dofjax.defocus(method="sliced")` then skips its adjoint's residuals (dead code XLA would
+    drop anyway, but compiling it cost the fit ~0.5-1 s of its 20 s budget). The choice is
+    made when a function is traced: a trace JAX has cached keeps it (both are correct)."""
+    before = getattr(_trace_state, "forward_only", False)
+    _trace_state.forward_only = True
+    try:
+        yield
+    finally:
+        _trace_state.forward_only = before
+
+
+def tracing_forward_only() -> bool:
+    """Whether the current trace is inside `forward_only`."""
+    return getattr(_trace_state, "forward_only", False)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))

@@ -58,7 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
-from ._autodiff import dense_jacobian
+from ._autodiff import dense_jacobian, tracing_forward_only
 from ._camera import Camera, check_margin
 from ._hidden import hidden_layer
 from ._kernels import (
@@ -449,11 +449,13 @@ def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blade
         # does not use.
         rest = camera.replace(focus_distance=jax.lax.stop_gradient(camera.focus_distance),
                               aperture_radius=jax.lax.stop_gradient(camera.aperture_radius))
-        adjoint = functools.partial(sliced_defocus_adjoint, window=window, blades=blades,
-                                    rotation=rotation, ratio=ratio)
+        # (inside a forward-only Jacobian, such as the fitter's, no residuals are needed)
+        adjoint = None if tracing_forward_only() else functools.partial(
+            sliced_defocus_adjoint, window=window, blades=blades, rotation=rotation, ratio=ratio)
         out = dense_jacobian(at(sliced_defocus), y,
                              (rgb, depth, rest, reflection, reflection_depth, layers),
-                             at(functools.partial(sliced_defocus_jacobian, residuals=True)),
+                             at(functools.partial(sliced_defocus_jacobian,
+                                                  residuals=adjoint is not None)),
                              adjoint=adjoint)
         return out, None
     dtype = rgb.dtype

@@ -281,6 +281,32 @@ def test_reverse_mode_through_the_adjoint_matches_forward_mode():
     np.testing.assert_allclose(rev, jac[::7, ::5], rtol=0, atol=1e-12 * float(np.abs(jac).max()))
 
 
+def test_forward_only_traces_skip_the_adjoint():
+    # inside `_autodiff.forward_only` (the fitter's Jacobians) the sliced defocus does not wire
+    # its adjoint (no residuals to compile); a gradient traced there goes through J, and
+    # equals the one through the adjoint
+    from dofjax._autodiff import forward_only
+
+    n = 24
+    cam = camera(width=n, height=n, aperture_radius=0.2)
+    rgb, depth, kw = _random_sources(n, (), cam, 17)
+    f = dofjax.defocus_fn(rgb, depth, cam, window=8, method="sliced")
+
+    def loss(p):
+        return jnp.sum(f(p[0], p[1]) ** 2)
+
+    def jaxpr(p):  # a new function each time: JAX caches traces by function, not by context
+        return str(jax.make_jaxpr(lambda p: jax.jvp(lambda p: f(p[0], p[1]), (p,),
+                                                    (jnp.ones(2),)))(p))
+
+    p = jnp.array([2.0, 0.2])
+    assert "dofjax_jacobian_product" in jaxpr(p)
+    with forward_only():
+        assert "dofjax_jacobian_product" not in jaxpr(p)
+        g_forward_only = jax.grad(lambda p: loss(p))(p)
+    np.testing.assert_allclose(g_forward_only, jax.grad(loss)(p), rtol=1e-10)
+
+
 def test_second_derivatives_through_the_written_out_jacobian():
     # defocus_fn's derivatives come from sliced_defocus_jacobian; a Hessian differentiates that
     # pass again (forward over forward): it must equal plain autodiff's Hessian of the model
