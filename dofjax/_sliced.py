@@ -510,6 +510,38 @@ class _Layout(NamedTuple):
         at 1/s of the resolution reads the sources with a border of s b full-resolution px."""
         return self.border_px - self.factors[self.runs[i_run][0]] * self.borders[i_run]
 
+    def view(self, x, i_run: int):
+        """A padded-frame array with run `i_run`'s border (a static slice; None stays None)."""
+        if x is None:
+            return None
+        o = self.run_view(i_run)
+        return x[..., o: x.shape[-2] - o, o: x.shape[-1] - o]
+
+    def level_table(self, i_run: int, dtype):
+        """Per level of the run: its q and its neighbours' (q_prev, q_p, q_next; the outermost
+        levels' missing neighbour one past them), and whether it is the first or last level."""
+        q_lv = np.sign(self.levels) * self.levels * self.levels
+        n, ps = len(self.levels), self.runs[i_run]
+        q3 = np.array([(q_lv[max(p - 1, 0)] + (p == 0), q_lv[p],
+                        q_lv[min(p + 1, n - 1)] - (p == n - 1)) for p in ps])
+        return (jnp.asarray(q3, dtype), jnp.asarray([p == 0 for p in ps]),
+                jnp.asarray([p == n - 1 for p in ps]))
+
+    def kernel_table(self, i_run: int, dtype, reflect: bool = False):
+        """The run's shifted-sum kernels, each centred in the run's largest size (point-reflected
+        with `reflect`: the blur's transpose), and each level's index into the sorted distinct
+        sizes (the `lax.switch` branch that blurs with its own taps only):
+        (k_sizes, (ks, which))."""
+        ps, size = self.runs[i_run], self.sizes[i_run]
+        k_sizes = sorted({self.kernels[p].shape[0] for p in ps})
+        ks = np.zeros((len(ps), size, size))
+        for i, p in enumerate(ps):
+            o = (size - self.kernels[p].shape[0]) // 2
+            ks[i, o: size - o, o: size - o] = self.kernels[p][::-1, ::-1] if reflect \
+                else self.kernels[p]
+        which = [k_sizes.index(self.kernels[p].shape[0]) for p in ps]
+        return k_sizes, (jnp.asarray(ks, dtype), jnp.asarray(which, jnp.int32))
+
 
 def _layout(window, blades, rotation, ratio, min_radius, height, width) -> _Layout:
     levels, factors, kernels = _plan(window, blades, rotation, ratio, min_radius)
@@ -536,7 +568,7 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
     _, _, height, width = colour.shape
     dtype = colour.dtype
     lay = _layout(window, blades, rotation, ratio, min_radius, height, width)
-    levels, factors, kernels, runs = lay.levels, lay.factors, lay.kernels, lay.runs
+    factors, kernels, runs = lay.factors, lay.kernels, lay.runs
     sizes, borders, hp, wp = lay.sizes, lay.borders, lay.hp, lay.wp
     tangents = tangents or []
     n_lanes = 1 + len(tangents)
@@ -553,8 +585,6 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
         refl = pad(jnp.moveaxis(reflection, -1, 0))
         q_r = pad(q_r)
     nc = 6 if mirror else 3  # accumulated colour channels: surfaces (+ reflection)
-    q_lv = np.sign(levels) * levels * levels
-    n = len(levels)
     run_ys = []  # per run: the value lane's (hiding, rgb_b, cov_b) of every slice, or None
     far_res = None
 
@@ -569,13 +599,7 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
         if size <= SHIFTED_MAX:
             # kernels padded to the run's largest; each level blurs with its own size's taps only
             # (a `lax.switch` on the size: every tap costs a pass over the slice)
-            k_sizes = sorted({kernels[p].shape[0] for p in ps})
-            ks = np.zeros((len(ps), size, size))
-            for i, p in enumerate(ps):
-                o = (size - kernels[p].shape[0]) // 2
-                ks[i, o: size - o, o: size - o] = kernels[p]
-            ks = (jnp.asarray(ks, dtype),
-                  jnp.asarray([k_sizes.index(kernels[p].shape[0]) for p in ps], jnp.int32))
+            k_sizes, ks = lay.kernel_table(i_run, dtype)
             # the compositing runs inside each branch, so the blurred fields fuse into it
             branches = [functools.partial(
                 lambda st, fs, k, o: composite(st, _blur(fs, k[o: size - o, o: size - o], border)),
@@ -595,19 +619,13 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
 
         # the sources with this run's border (a static slice of the padded ones)
         def padded(x):
-            if x is None:
-                return None
-            o = lay.run_view(i_run)
-            return x[..., o: x.shape[-2] - o, o: x.shape[-1] - o]
+            return lay.view(x, i_run)
 
         colour_p, q_p, alpha_p = padded(colour), padded(q), padded(alpha)
         d_alpha_p = [padded(x) for x in d_alpha]
         if mirror:
             refl_p, q_r_p = padded(refl), padded(q_r)
-        q3 = np.array([(q_lv[max(p - 1, 0)] + (p == 0), q_lv[p],
-                        q_lv[min(p + 1, n - 1)] - (p == n - 1)) for p in ps])
-        xs = (jnp.asarray(q3, dtype), jnp.asarray([p == 0 for p in ps]),
-              jnp.asarray([p == n - 1 for p in ps]), ks)
+        xs = lay.level_table(i_run, dtype) + (ks,)
         each = range(colour.shape[0])
 
         def slice_parts(weight, occ):
@@ -831,11 +849,9 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
     height, width = ct.shape[0], ct.shape[1]
     dtype = colour.dtype
     lay = _layout(window, blades, rotation, ratio, min_radius, height, width)
-    levels, factors, kernels, runs = lay.levels, lay.factors, lay.kernels, lay.runs
+    factors, kernels, runs = lay.factors, lay.kernels, lay.runs
     hp, wp = lay.hp, lay.wp
     nc = 6 if mirror else 3
-    q_lv = np.sign(levels) * levels * levels
-    n = len(levels)
     each = range(colour.shape[0])
     ct = jnp.moveaxis(ct, -1, 0).astype(dtype)
 
@@ -865,11 +881,8 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         s = factors[ps[0]]
         h, w = hp // s, wp // s
         o = lay.run_view(i_run)
-
-        def view(x):
-            return None if x is None else x[..., o: x.shape[-2] - o, o: x.shape[-1] - o]
-
-        colour_p, q_p, alpha_p, refl_p, q_r_p = map(view, (colour, q, alpha, refl, q_r))
+        colour_p, q_p, alpha_p, refl_p, q_r_p = (lay.view(x, i_run)
+                                                 for x in (colour, q, alpha, refl, q_r))
 
         def no_sources(gs, k):
             # a slice no source reaches: its fields are zero, and so are their cotangents'
@@ -882,13 +895,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         if size <= SHIFTED_MAX:
             # the shifted sums' transpose: the point-reflected kernel over the cotangent
             # zero-padded by its radius plus the run's border (the fields carry that border)
-            k_sizes = sorted({kernels[p].shape[0] for p in ps})
-            ks = np.zeros((len(ps), size, size))
-            for i, p in enumerate(ps):
-                ok = (size - kernels[p].shape[0]) // 2
-                ks[i, ok: size - ok, ok: size - ok] = kernels[p][::-1, ::-1]
-            ks = (jnp.asarray(ks, dtype),
-                  jnp.asarray([k_sizes.index(kernels[p].shape[0]) for p in ps], jnp.int32))
+            k_sizes, ks = lay.kernel_table(i_run, dtype, reflect=True)
 
             def branch(gs, k, k_size):
                 r, ok = k_size // 2, (size - k_size) // 2
@@ -913,10 +920,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
             def blur_t(gs, k, has):
                 return jax.lax.cond(has, fft_t, no_sources, gs, k)
 
-        q3 = np.array([(q_lv[max(p - 1, 0)] + (p == 0), q_lv[p],
-                        q_lv[min(p + 1, n - 1)] - (p == n - 1)) for p in ps])
-        xs = (jnp.asarray(q3, dtype), jnp.asarray([p == 0 for p in ps]),
-              jnp.asarray([p == n - 1 for p in ps]), ks, res["ys"][i_run])
+        xs = lay.level_table(i_run, dtype) + (ks, res["ys"][i_run])
         acc = (jnp.zeros_like(q_p), jnp.zeros_like(alpha_p) if layered else None,
                None if q_r_p is None else jnp.zeros_like(q_r_p))
 
