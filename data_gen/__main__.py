@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from dofjax import _compile_cache as compile_cache
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
@@ -19,9 +21,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", default=None, help="image size WxH, overrides config.size")
     parser.add_argument("--dry-run", action="store_true", help="print the plan, render nothing")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    parser.add_argument("--jax-cache", default=None, metavar="DIR",
-                        help="JAX persistent compilation cache directory, shared by workers and "
-                        "runs (saves 10-40 s of compiling per scene kind per process)")
+    compile_cache.add_argument(parser)  # shared by the workers too
     args = parser.parse_args(argv)
 
     from ._config import ConfigError, load_config, parse_size
@@ -43,9 +43,10 @@ def main(argv: list[str] | None = None) -> int:
         print(dry_run(cfg, args.count, args.seed))
         return 0
     try:
+        cache = compile_cache.use_compilation_cache(args.jax_cache)
         summary = run(args.out, args.count, args.seed, cfg, workers=args.workers,
-                      progress=not args.no_progress, jax_cache_dir=args.jax_cache)
-    except ValueError as e:
+                      progress=not args.no_progress, jax_cache_dir=cache)
+    except (ValueError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(summary.text())

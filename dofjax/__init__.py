@@ -5,6 +5,7 @@ and recover focus distance and aperture from a blurred image.
 """
 
 from ._camera import Camera as Camera, coc_radius as coc_radius
+from ._compile_cache import use_compilation_cache as use_compilation_cache
 from ._defocus import (
     DefocusInfo as DefocusInfo,
     DefocusWarning as DefocusWarning,

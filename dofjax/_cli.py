@@ -32,6 +32,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from . import _compile_cache as compile_cache
+
 
 class Subcommand(NamedTuple):
     """One `dofjax <name>` subcommand: `configure(parser)` adds arguments, `run(args)` returns the
@@ -325,6 +327,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="dofjax", description="Differentiable depth-of-field rendering in JAX."
     )
     parser.add_argument("--version", action="version", version=f"dofjax {dofjax.__version__}")
+    compile_cache.add_argument(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for cmd in SUBCOMMANDS:
         p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.help)
@@ -342,6 +345,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        compile_cache.use_compilation_cache(args.jax_cache)
         return int(args._run(args) or 0)
     except (ValueError, OSError) as exc:  # FileNotFoundError is an OSError
         message = str(exc) or type(exc).__name__

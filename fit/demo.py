@@ -17,6 +17,7 @@ import jax
 import numpy as np
 
 import dofjax
+from dofjax import _compile_cache as compile_cache
 from fit._table import format_table, result_rows
 
 HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -33,7 +34,9 @@ def main(argv=None) -> None:
     p.add_argument("--noise", type=float, default=0.005, help="Gaussian noise sigma")
     p.add_argument("--window", type=float, default=8.0, help="defocus window, px")
     p.add_argument("--seed", type=int, default=0)
+    compile_cache.add_argument(p)
     a = p.parse_args(argv)
+    compile_cache.use_compilation_cache(a.jax_cache)
 
     scene = dofjax.load_scene(a.scene)
     cam0 = dofjax.load_camera(a.scene)

@@ -25,6 +25,7 @@ import os
 import numpy as np
 
 import dofjax
+from dofjax import _compile_cache as compile_cache
 from fit._table import format_table, result_rows
 
 
@@ -70,7 +71,9 @@ def main(argv=None) -> None:
     p.add_argument("--supersample", type=int, default=1,
                    help="--scene: render the sharp input this many times finer per side")
     p.add_argument("--out", help="output prefix (default: TARGET without .exr + '.fit')")
+    compile_cache.add_argument(p)
     a = p.parse_args(argv)
+    compile_cache.use_compilation_cache(a.jax_cache)
     if a.samples is not None and a.method != "lens":
         p.error("--samples is for --method lens only")
     if a.sharp and (a.layers is not None or a.supersample != 1):

@@ -24,6 +24,7 @@ from collections import defaultdict
 import numpy as np
 
 import dofjax
+from dofjax import _compile_cache as compile_cache
 
 from ._table import format_table
 
@@ -229,7 +230,9 @@ def main(argv=None) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-crb", action="store_true", help="skip the Cramer-Rao bound")
     p.add_argument("--out", help="output directory (default: next to the manifest)")
+    compile_cache.add_argument(p)
     a = p.parse_args(argv)
+    compile_cache.use_compilation_cache(a.jax_cache)
     root = os.path.dirname(os.path.abspath(a.manifest))
     out = a.out or root
     os.makedirs(out, exist_ok=True)
