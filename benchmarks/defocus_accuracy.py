@@ -214,9 +214,10 @@ def run_scene(path, args):
             variants.append((f"{method}, single layer", dict(
                 f=lambda m=method: dofjax.defocus(
                     sharp.rgb, sharp.depth, cam, reflection=sharp.reflection,
-                    reflection_depth=sharp.reflection_depth, method=m))))
-            variants.append((f"{method}, {args.layers} layers", dict(
-                f=lambda m=method: dofjax.defocus(sharp, cam, method=m))))
+                    reflection_depth=sharp.reflection_depth, **method_options(m)))))
+            if not method.endswith("+hidden"):  # (peeled layers: no estimate to make)
+                variants.append((f"{method}, {args.layers} layers", dict(
+                    f=lambda m=method: dofjax.defocus(sharp, cam, method=m))))
         variants.append(("seed (Yu 2004, before)", dict(
             f=lambda: seed_defocus(sharp.rgb, sharp.depth, cam))))
         if args.guard and sharp_spp == max(args.sharp_spp):
@@ -251,6 +252,14 @@ def run_scene(path, args):
                 aperture=float(cam.aperture_radius))
 
 
+def method_options(token):
+    """`defocus` keywords of a --methods token: a method, or "sliced+hidden" (the sliced
+    method with the hidden-background estimate of single-layer input)."""
+    if token.endswith("+hidden"):
+        return dict(method=token.split("+")[0], hidden=True)
+    return dict(method=token)
+
+
 def guarded_variants(methods, layers, sharp, cam, margin, tag):
     """(label, {f}) rows of every method on a guard-band render `sharp` (an RGBD for
     `cam.padded(margin)`, or finer: supersampled), single layer and layered; `defocus(...,
@@ -260,9 +269,10 @@ def guarded_variants(methods, layers, sharp, cam, margin, tag):
         out.append((f"{method}, single layer, {tag}", dict(
             f=lambda m=method: dofjax.defocus(
                 sharp.rgb, sharp.depth, cam, reflection=sharp.reflection,
-                reflection_depth=sharp.reflection_depth, method=m, margin=margin))))
-        out.append((f"{method}, {layers} layers, {tag}", dict(
-            f=lambda m=method: dofjax.defocus(sharp, cam, method=m, margin=margin))))
+                reflection_depth=sharp.reflection_depth, margin=margin, **method_options(m)))))
+        if not method.endswith("+hidden"):
+            out.append((f"{method}, {layers} layers, {tag}", dict(
+                f=lambda m=method: dofjax.defocus(sharp, cam, method=m, margin=margin))))
     return out
 
 
@@ -352,7 +362,8 @@ def main():
                     help="raise the reference spp until its noise RMSE is at most this")
     ap.add_argument("--sharp-spp", default="1,16,64", help="sharp-input spp values (squares)")
     ap.add_argument("--layers", type=int, default=3, help="peeled layers for the layered rows")
-    ap.add_argument("--methods", default="pyramid,sliced")
+    ap.add_argument("--methods", default="pyramid,sliced",
+                    help="comma-separated: pyramid, sliced, lens, sliced+hidden")
     ap.add_argument("--scenes", default=None,
                     help="comma-separated names (quads, spheres, bench/plane, ...); default all")
     ap.add_argument("--guard", action="store_true",

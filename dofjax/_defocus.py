@@ -60,7 +60,7 @@ from jaxtyping import Array, ArrayLike
 
 from ._autodiff import dense_jacobian, tracing_forward_only
 from ._camera import Camera, check_margin
-from ._hidden import hidden_layer
+from ._hidden import hidden_layer, hidden_layers
 from ._kernels import (
     MAX_WINDOW,
     R0,
@@ -416,14 +416,27 @@ def _sources(rgb, depth, reflection, layers, dtype):
     return lrgb, inverse_depth(jnp.asarray(layers.depth, dtype)), jnp.asarray(layers.alpha, dtype)
 
 
+def _with_hidden(rgb, depth, reflection, layers, window, method, hidden):
+    """`layers` for the sliced method with the hidden-background estimate (single-layer input
+    and `hidden`): `_hidden.hidden_layers`, a function of the images alone, so it is made once
+    per image (`defocus_fn`) and differentiated like peeled layers."""
+    if method == "sliced" and hidden and layers is None:
+        return hidden_layers(rgb, depth, window, reflection)
+    return layers
+
+
 def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blades, rotation, ratio,
-         method="pyramid", samples=None):
+         method="pyramid", samples=None, hidden=True):
+    """The defocus by `method`; `hidden`: the hidden-background estimate for single-layer
+    input (the sliced method gets it from `_with_hidden`)."""
     if method == "lens":  # plain autodiff: sheet positions are constants, weights are cheap
         out = lens_defocus(rgb, depth, camera, window=window, blades=blades, rotation=rotation,
                            ratio=ratio, reflection=reflection, reflection_depth=reflection_depth,
-                           layers=layers, samples=LENS_SAMPLES if samples is None else int(samples))
+                           layers=layers, samples=LENS_SAMPLES if samples is None else int(samples),
+                           hidden=hidden)
         return out, None
     if method == "sliced":
+        layers = _with_hidden(rgb, depth, reflection, layers, window, method, hidden)
         def at(fn):
             """fn (`sliced_defocus` or `sliced_defocus_jacobian`) at focus, aperture = y."""
             def call(y, a):
@@ -468,7 +481,7 @@ def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blade
     else:
         refl = jnp.zeros((1, 1, 3), dtype)
         refl_inv = jnp.zeros((1, 1), dtype)
-    config = _Config(float(window), blades, rotation, ratio, layers is None, mirror)
+    config = _Config(float(window), blades, rotation, ratio, layers is None and hidden, mirror)
     return _core(
         src_rgb, src_inv, src_a, refl, refl_inv,
         jnp.asarray(camera.focus_distance, dtype), jnp.asarray(camera.aperture_radius, dtype),
@@ -485,6 +498,20 @@ def _as_array(x, dtype=None):
     return x.astype(dtype)
 
 
+def check_hidden(name: str, hidden, method: str, layers=None) -> bool:
+    """The hidden-background estimate's switch: None is the method's default (on for "pyramid"
+    and "lens", off for "sliced", where it costs ~1.5x the forward pass); True needs
+    single-layer input (peeled layers are the real hidden surfaces)."""
+    if hidden is None:
+        return method != "sliced"
+    if not isinstance(hidden, (bool, np.bool_)):
+        raise ValueError(f"{name}: hidden must be True, False or None, got {hidden!r}")
+    if hidden and layers is not None:
+        raise ValueError(f"{name}: hidden=True estimates the hidden background of single-layer "
+                         "input, but peeled layers were given (they are the hidden surfaces)")
+    return bool(hidden)
+
+
 def check_samples(name: str, samples, method: str) -> None:
     """`samples` (lens points per pixel) is for method "lens" only, a positive int."""
     if samples is None:
@@ -496,7 +523,7 @@ def check_samples(name: str, samples, method: str) -> None:
 
 
 def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, method, shape, blades,
-            rotation, ratio, samples=None, margin=0):
+            rotation, ratio, samples=None, margin=0, hidden=None):
     """Unpack `(rgb, depth, camera)` or `(rgbd, camera)`, convert and validate on the host: the one
     input path of `defocus` and `defocus_fn`."""
     if isinstance(rgb, RGBD):
@@ -512,6 +539,7 @@ def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, meth
     if method not in METHODS:
         raise ValueError(f"{name}: method must be one of {METHODS}, got {method!r}")
     check_samples(name, samples, method)
+    hidden = check_hidden(name, hidden, method, layers)
     margin = check_margin(name, margin)
     camera = camera.padded(margin) if isinstance(camera, Camera) else camera
     blades, rotation, ratio = _shape_config(shape, blades, rotation, ratio)
@@ -523,7 +551,8 @@ def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, meth
     s = supersampling(rgb.shape, camera)
     camera = camera.scaled(s)
     _validate(rgb, depth, camera, reflection, reflection_depth, layers)
-    return rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio, s
+    return (rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio, s,
+            hidden)
 
 
 def _crop(margin: int) -> tuple[slice, slice]:
@@ -559,6 +588,7 @@ def defocus(
     method: str = "pyramid",
     samples: int | None = None,
     margin: int = 0,
+    hidden: bool | None = None,
 ) -> Array | tuple[Array, DefocusInfo]:
     """The image a thin lens takes of a sharp RGB-D render (DESIGN.md section 3).
 
@@ -599,6 +629,14 @@ def defocus(
         samples: lens points per pixel for method "lens" (None: `LENS_SAMPLES` = 256). 64 runs
             ~3.5x faster; on the lens-reference fit cases of benchmarks/README.md the model's
             mismatch at the true camera rose from 0.0216 to 0.0224 (median relative rms).
+        hidden: single-layer input (no `layers`): estimate the background hidden behind
+            foreground edges (pull-push fill of the locally farthest pixels), so a blurred
+            foreground edge uncovers something instead of stretching over the gap. None: the
+            method's default, on for "pyramid" and "lens" (which re-estimate it from the CoC
+            at every camera) and off for "sliced", where it is made once from the images
+            (`_hidden.hidden_layers`) and blurred as a second layer: ~1.5x the forward pass
+            (on quads.json, single-layer RMSE against the lens-sampling reference 0.0212 ->
+            0.0149; benchmarks/README.md). True with `layers` is an error.
 
     Returns:
         (H, W, 3) defocused linear colour (and the info when asked).
@@ -607,9 +645,9 @@ def defocus(
         ValueError: shape mismatches, non-finite colours, depth <= 0 or NaN, negative aperture,
             bad shape parameters. A clamped CoC is a `DefocusWarning`, not an error.
     """
-    (rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio,
-     s) = _inputs("defocus", rgb, depth, camera, reflection, reflection_depth, layers, method,
-                  shape, blades, rotation, ratio, samples, margin)
+    (rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio, s,
+     hidden) = _inputs("defocus", rgb, depth, camera, reflection, reflection_depth, layers,
+                       method, shape, blades, rotation, ratio, samples, margin, hidden)
     crop = _crop(margin)
     # a supersampled input (s > 1): `camera` is now the fine one, CoCs in its pixels; the window
     # is given and reported, and the result returned, on the coarse grid
@@ -655,7 +693,7 @@ def defocus(
             stacklevel=2,
         )
     out, _ = _run(rgb, depth, camera, reflection, reflection_depth, layers, win, blades, rotation,
-                  ratio, method, samples)
+                  ratio, method, samples, hidden)
     out = box_pool(out, s)[crop]
     if return_info:
         n = (len(lens_levels(win)) if method == "lens"
@@ -680,11 +718,13 @@ def defocus_fn(
     method: str = "pyramid",
     samples: int | None = None,
     margin: int = 0,
+    hidden: bool | None = None,
 ):
     """A pure, jittable `f(focus_distance, aperture_radius) -> (H, W, 3)` for fitting.
 
-    `method` is "pyramid", "sliced" or "lens", `samples` the lens method's points per pixel and
-    `margin` the sharp input's guard band, as in `defocus`.
+    `method` is "pyramid", "sliced" or "lens", `samples` the lens method's points per pixel,
+    `margin` the sharp input's guard band and `hidden` the hidden-background estimate, as in
+    `defocus` (the sliced method's is made here, once).
 
     The image, depth, field of view and shape are validated once here (host) and closed over;
     `f` runs only the jitted defocus core with a fixed window, so it can be `jax.jit`-ed,
@@ -705,9 +745,9 @@ def defocus_fn(
         f(focus_distance, aperture_radius): world units (scalars or 0-d arrays) -> image. The
         function also has `.window` (px) and `.max_abs_coc(focus, aperture)` (jittable).
     """
-    (rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio,
-     s) = _inputs("defocus_fn", rgb, depth, camera, reflection, reflection_depth, layers,
-                  method, shape, blades, rotation, ratio, samples, margin)
+    (rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio, s,
+     hidden) = _inputs("defocus_fn", rgb, depth, camera, reflection, reflection_depth, layers,
+                       method, shape, blades, rotation, ratio, samples, margin, hidden)
     crop = _crop(margin)
     if window is None:
         c = np.abs(np.asarray(jnp.asarray(_coc_host(depth, camera)))) / s
@@ -717,13 +757,16 @@ def defocus_fn(
         raise ValueError(f"defocus_fn: window must be > 0 px, got {window!r}")
     win = bucket_window(window * s)  # (a supersampled input: in its fine pixels)
     pixel_scale = camera.pixel_scale / s
+    # the sliced method's hidden-background estimate depends on the images only: made once here
+    layers = _with_hidden(rgb, depth, reflection, layers, win, method, hidden)
 
     def _cam(focus_distance, aperture_radius):
         return camera.replace(focus_distance=focus_distance, aperture_radius=aperture_radius)
 
     def f(focus_distance, aperture_radius):
         out, _ = _run(rgb, depth, _cam(focus_distance, aperture_radius), reflection,
-                      reflection_depth, layers, win, blades, rotation, ratio, method, samples)
+                      reflection_depth, layers, win, blades, rotation, ratio, method, samples,
+                      hidden)
         return box_pool(out, s)[crop]
 
     def max_abs_coc(focus_distance, aperture_radius):

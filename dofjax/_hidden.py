@@ -14,7 +14,8 @@ import math
 import jax.numpy as jnp
 
 from ._kernels import down2, up2
-from ._numerics import safe_div
+from ._numerics import inverse_depth, safe_div
+from ._rgbd import Layers
 
 
 def _min_filter(x, radius: int):
@@ -108,3 +109,37 @@ def hidden_layer(rgb_c, c, window: float):
     # fill only from locally far pixels (not from a foreground's interior away from its edges)
     fill = _pull_push(jnp.concatenate([rgb_c, c[None]], axis=0), 1.0 - nearer)
     return fill[:3], fill[3], h
+
+
+def hidden_layers(rgb, depth, window: float, reflection=None):
+    """Single-layer RGB-D: `hidden_layer`'s estimate from the depth alone, as peeled layers.
+
+    `hidden_layer` finds depth edges and the foreground near them by CoC differences of 1-2 px,
+    so its estimate moves with the focus and aperture (its colours, too). Here the CoC is
+    replaced by the inverse depth scaled so that the image's range of inverse depths spans
+    `window` px (what the CoC spans when the focus sits at one end of that range and the
+    largest |c| is the window): the estimate is a fixed function of (surface, depth), and a
+    defocus differentiates it like a peeled layer's (its coverage is gated by the camera as
+    theirs is).
+
+    Args:
+        rgb: (H, W, 3) the sharp colour; depth: (H, W) its z-depth, > 0, +inf for the background.
+        window: the defocus window (px): the neighbourhood of an edge that gets the estimate.
+        reflection: (H, W, 3) the part of rgb seen through mirrors, or None: the estimate fills
+            from the surfaces' own colour.
+
+    Returns:
+        `Layers` of two: the visible surface (rgb, coverage 1) and the estimate (colour,
+        z-depth, coverage in [0, 1], 0 away from the foreground side of depth edges).
+    """
+    surface = rgb if reflection is None else rgb - reflection
+    v = inverse_depth(depth)
+    lo, hi = jnp.min(v), jnp.max(v)
+    span = hi - lo  # 0 for a single depth: then no edges, and an estimate of coverage 0
+    px = jnp.where(span > 0.0, window / jnp.where(span > 0.0, span, 1.0), 0.0)  # px per 1/z
+    h_rgb, h_pc, h_a = hidden_layer(jnp.moveaxis(surface, -1, 0), (v - lo) * px, window)
+    v_h = lo + safe_div(h_pc, px)
+    d_h = jnp.where(v_h > 0.0, 1.0 / jnp.where(v_h > 0.0, v_h, 1.0), jnp.inf)
+    return Layers(rgb=jnp.stack([rgb, jnp.moveaxis(h_rgb, 0, -1)]),
+                  depth=jnp.stack([depth, d_h.astype(depth.dtype)]),
+                  alpha=jnp.stack([jnp.ones_like(depth), h_a.astype(depth.dtype)]))

@@ -98,8 +98,9 @@ def _index(c, lv, weights):
     return jnp.interp(-x, jnp.asarray(-grid, c.dtype), jnp.arange(len(lv), dtype=c.dtype))
 
 
-def _sources(rgb, depth, camera, reflection, layers, window, lv, weights):
-    """[(colour (H, W, 3), fractional level index, coverage)] of every surface."""
+def _sources(rgb, depth, camera, reflection, layers, window, lv, weights, hidden=True):
+    """[(colour (H, W, 3), fractional level index, coverage)] of every surface (single-layer
+    input: and the hidden-background estimate, with `hidden`)."""
     dtype = rgb.dtype
 
     def coc(z):
@@ -112,9 +113,11 @@ def _sources(rgb, depth, camera, reflection, layers, window, lv, weights):
     if layers is not None:
         hidden = [(jnp.asarray(layers.rgb[k], dtype), coc(layers.depth[k]),
                    jnp.asarray(layers.alpha[k], dtype)) for k in range(1, layers.depth.shape[0])]
-    else:
+    elif hidden:
         h_rgb, h_c, h_a = hidden_layer(jnp.moveaxis(surface, -1, 0), c0, window)
         hidden = [(jnp.moveaxis(h_rgb, 0, -1), h_c, h_a)]
+    else:
+        hidden = []
     for colour, c, alpha in hidden:
         ik = _index(c, lv, weights)
         # only where it lies at least one level behind the visible surface (ramped over a
@@ -146,23 +149,25 @@ def _sheets(sources, n):
 
 
 @functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio", "samples",
-                                             "spacing", "weights", "interp"))
+                                             "spacing", "weights", "interp", "hidden"))
 def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rotation=0.0,
                  ratio=1.0, reflection=None, reflection_depth=None, layers=None,
                  samples: int = LENS_SAMPLES, spacing: float = SLICE_SPACING, weights="q",
-                 interp="cubic"):
+                 interp="cubic", hidden: bool = True):
     """Defocus by lens-sampled slices (module docstring); pure and jittable (`window`, shape,
     `samples`, `spacing`, `weights` and `interp` static). Arguments as `dofjax.defocus`; no input
     validation here. `weights`: "q" (split linear in c |c|) or "c"; `interp`: "cubic"
     (Catmull-Rom) or "linear" (bilinear) reads: the alternatives measured in the docstring.
 
-    Single-layer input (`layers=None`) gets the hidden-background estimate as its extra source.
+    Single-layer input (`layers=None`) gets the hidden-background estimate as its extra source
+    (unless `hidden` is False).
     |c| beyond the window is clamped to it.
     """
     height, width = depth.shape
     dtype = rgb.dtype
     lv = levels(window, spacing)
-    stack = _sheets(_sources(rgb, depth, camera, reflection, layers, window, lv, weights),
+    stack = _sheets(_sources(rgb, depth, camera, reflection, layers, window, lv, weights,
+                             hidden),
                     len(lv))
     mirror = reflection is not None
     if mirror:

@@ -31,11 +31,10 @@
    foreground uncovers but no layer supplies, or the image border) the visible colours are
    renormalised; elsewhere the scatter's energy is untouched.
 4. Peeled layers (`render(..., layers=K)`) add the surfaces a blurred foreground can uncover;
-   for single-layer input, `hidden=True` makes the pyramid method's estimate of the hidden
-   background (`_hidden.hidden_layer`) that extra source (`dofjax.defocus` does not pass it yet:
-   it would change the fitter's model). The mirror layer's reflected radiance is blurred at its
-   virtual depth in the same slices and added on top without occlusion (the mirror surface that
-   carries it must not hide it).
+   for single-layer input, `dofjax.defocus(..., hidden=True)` passes an estimate of the hidden
+   background made from the images alone (`_hidden.hidden_layers`) as such a layer. The mirror
+   layer's reflected radiance is blurred at its virtual depth in the same slices and added on
+   top without occlusion (the mirror surface that carries it must not hide it).
 
 Kernels depend only on static choices (window, shape), so derivatives w.r.t. focus and aperture
 flow only through the slice weights. `sliced_defocus(...)` is pure and jittable (the window is
@@ -64,7 +63,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._camera import Camera, coc_radius
-from ._hidden import hidden_layer
 from ._kernels import MAGNITUDES, R0, bucket_window, soft_kernel
 from ._numerics import safe_div, safe_sqrt
 
@@ -319,21 +317,11 @@ def surface_sources(rgb, depth, reflection, layers, camera, levels):
     return out
 
 
-def _sources(rgb, depth, layers, camera, levels, reflection=None, hidden=False):
-    """(colour, signed CoC, coverage) of every surface (see `surface_sources`), and with `hidden`
-    (single-layer input) the estimated background behind foreground edges (`hidden_layer`),
-    gated like a peeled layer: it enters only 1.5-2.5 levels behind the visible surface."""
-    out = [(colour, coc_radius(z, camera).astype(rgb.dtype), alpha)
-           for colour, z, alpha in surface_sources(rgb, depth, reflection, layers, camera,
-                                                   levels)]
-    if hidden:
-        colour, c, _ = out[0]
-        window = float(np.max(np.abs(levels)))
-        h_rgb, h_c, h_a = hidden_layer(jnp.moveaxis(colour, -1, 0), jnp.clip(c, -window, window),
-                                       window)
-        useful = _behind(_level_index(h_c, levels), _level_index(c, levels))
-        out.append((jnp.moveaxis(h_rgb, 0, -1), h_c, h_a * useful))
-    return out
+def _sources(rgb, depth, layers, camera, levels, reflection=None):
+    """(colour, signed CoC, coverage) of every surface (see `surface_sources`)."""
+    return [(colour, coc_radius(z, camera).astype(rgb.dtype), alpha)
+            for colour, z, alpha in surface_sources(rgb, depth, reflection, layers, camera,
+                                                    levels)]
 
 
 def _level_slopes(front_w, back_w, q_lv):
@@ -346,10 +334,10 @@ def _level_slopes(front_w, back_w, q_lv):
     return front, back
 
 
-def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_depth, hidden):
+def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_depth):
     """The sources stacked: colours (S, 3, H, W), q = sign(c) c^2 (S, H, W), coverage
     (S, H, W) and the mirror's q (H, W) or None."""
-    srcs = _sources(rgb, depth, layers, camera, levels, reflection, hidden)
+    srcs = _sources(rgb, depth, layers, camera, levels, reflection)
     colour = jnp.stack([jnp.moveaxis(s[0], -1, 0) for s in srcs])
     c = jnp.stack([s[1] for s in srcs])
     alpha = jnp.stack([s[2] for s in srcs])
@@ -360,23 +348,22 @@ def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_de
     return colour, jnp.sign(c) * c * c, alpha, q_r
 
 
-@functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio", "hidden",
+@functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio",
                                              "min_radius"))
 def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rotation=0.0,
                    ratio=1.0, reflection=None, reflection_depth=None, layers=None,
-                   hidden: bool = False, min_radius: float = MIN_LOW_RADIUS):
+                   min_radius: float = MIN_LOW_RADIUS):
     """Defocus by depth slices, each blurred by shifted sums at its own resolution (pure,
     jittable; `window` px and `min_radius` are static).
 
     Arguments as `dofjax.defocus`; no input validation here (the public wrapper does it).
-    |c| beyond the window is clamped to it. `hidden`: add the hidden-background estimate of
-    single-layer input (`_hidden.hidden_layer`) as a source. `min_radius`: the smallest
+    |c| beyond the window is clamped to it. `min_radius`: the smallest
     coarse-grid kernel radius (px) a level is blurred with (`MIN_LOW_RADIUS`; larger is slower
     and closer to the exact full-resolution disc, inf blurs every level at full resolution).
     """
     levels = _levels(float(window))
     colour, q, alpha, q_r = _source_fields(rgb, depth, layers, camera, levels, reflection,
-                                           reflection_depth, hidden)
+                                           reflection_depth)
     out, _, _ = _composite(colour, q, alpha, reflection, q_r, None, window=float(window),
                         blades=blades, rotation=float(rotation), ratio=float(ratio),
                         min_radius=float(min_radius))
@@ -400,7 +387,7 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     tangents run as separate arrays through the same blurs and compositing (a batched tangent
     axis compiles to slower fusions on the CPU). Only the peeled layers' gates are
     differentiated by `jax.jvp`.
-    Same arguments as `sliced_defocus` (no `hidden`: its colours depend on the camera).
+    Same arguments as `sliced_defocus`.
     `residuals`: also return what `sliced_defocus_adjoint` needs ((out, J, res)): the value
     lane's per-slice occluders and blurred colour and coverage. Whatever of (J, res) the caller
     does not use, XLA drops (forward mode keeps J, reverse mode res; tested by timing).
@@ -408,7 +395,7 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     levels = _levels(float(window))
     dtype = rgb.dtype
     colour, q, alpha, q_r = _source_fields(rgb, depth, layers, camera, levels, reflection,
-                                           reflection_depth, False)
+                                           reflection_depth)
     directions = _directions(camera.focus_distance, camera.aperture_radius, camera.pixel_scale,
                              dtype)
     d_alpha = [None, None]

@@ -125,14 +125,74 @@ def test_hidden_background_estimate_shows_inside_a_blurred_foreground_edge():
     rgb[10:22, 10:22] = [0.0, 0.0, 1.0]
     depth = np.full((N, N), 2.0)
     depth[10:22, 10:22] = depth_for_coc(5.0, cam)
-    plain, hidden = (np.asarray(sliced_defocus(rgb, depth, cam, window=6, hidden=h))
+    plain, hidden = (np.asarray(dofjax.defocus(rgb, depth, cam, window=6, method="sliced",
+                                               hidden=h))
                      for h in (False, True))
+    np.testing.assert_array_equal(
+        plain, np.asarray(dofjax.defocus(rgb, depth, cam, window=6, method="sliced")))
     assert plain[16, 11, 0] < 0.05  # just inside the edge: blue only
     assert 0.15 < hidden[16, 11, 0] < 0.6  # red from behind the edge
     assert hidden[16, 11, 2] > 0.4  # ... while the square still covers most of it
     np.testing.assert_allclose(hidden[1, 1], plain[1, 1], atol=1e-9)
     assert hidden[16, 16, 2] > 0.95  # the square's centre, 1 px beyond its blur: still blue
     assert np.all(np.isfinite(hidden))
+
+
+def test_hidden_background_estimate_is_a_fixed_layer_of_the_images():
+    # the estimate is made from (rgb, depth) alone (`_hidden.hidden_layers`), so the defocus
+    # with it is the defocus of those two layers at every camera, and its derivatives w.r.t.
+    # focus and aperture are the layered model's: forward mode (J) and reverse mode (the
+    # adjoint) against central differences
+    from dofjax._hidden import hidden_layers
+
+    n = 32
+    cam = camera(width=n, height=n, aperture_radius=0.2)
+    rng = np.random.default_rng(21)
+    rgb = rng.random((n, n, 3))
+    depth = np.full((n, n), 3.0)
+    depth[8:20, 6:22] = 1.1  # a near block: depth edges on every side
+    w = rng.random((n, n, 3))
+    f = dofjax.defocus_fn(rgb, depth, cam, window=8, method="sliced", hidden=True)
+    layers = hidden_layers(jnp.asarray(rgb), jnp.asarray(depth), 8.0)
+    assert float(jnp.max(layers.alpha[1])) > 0.5  # the estimate is there
+    for d, a in [(2.0, 0.2), (1.5, 0.35)]:
+        want = dofjax.defocus(rgb, depth, cam.replace(focus_distance=d, aperture_radius=a),
+                              window=8, method="sliced", layers=layers)
+        np.testing.assert_allclose(f(d, a), want, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(
+            f(d, a), dofjax.defocus(rgb, depth, cam.replace(focus_distance=d, aperture_radius=a),
+                                    window=8, method="sliced", hidden=True), rtol=0, atol=1e-12)
+
+    def loss(p):
+        return jnp.sum(w * f(p[0], p[1]))
+
+    p = jnp.array([2.0, 0.2])
+    g_fwd = jax.jit(jax.jacfwd(loss))(p)
+    g_rev = jax.jit(jax.grad(loss))(p)
+    loss = jax.jit(loss)
+    for i, h in enumerate([1e-6, 1e-6]):
+        e = jnp.zeros(2).at[i].set(h)
+        fd = (loss(p + e) - loss(p - e)) / (2 * h)
+        assert float(g_fwd[i]) == pytest.approx(float(fd), rel=1e-5)
+        assert float(g_rev[i]) == pytest.approx(float(g_fwd[i]), rel=1e-10)
+
+
+def test_hidden_switch_is_checked():
+    cam = camera()
+    rgb = np.random.default_rng(2).random((N, N, 3))
+    depth = np.full((N, N), 2.5)
+    layers = dofjax.Layers(rgb=np.stack([rgb, rgb]), depth=np.stack([depth, depth + 1.0]),
+                           alpha=np.ones((2, N, N)))
+    with pytest.raises(ValueError, match="hidden=True.*peeled layers"):
+        dofjax.defocus(rgb, depth, cam, method="sliced", hidden=True, layers=layers)
+    with pytest.raises(ValueError, match="hidden must be"):
+        dofjax.defocus_fn(rgb, depth, cam, method="sliced", hidden="yes")
+    # pyramid: on by default, and hidden=False switches it off (visible only at depth edges)
+    depth[8:20, 8:20] = depth_for_coc(4.0, cam)
+    on, off = (np.asarray(dofjax.defocus(rgb, depth, cam, window=6, hidden=h))
+               for h in (None, False))
+    assert np.max(np.abs(on - off)) > 0.01
+    np.testing.assert_allclose(on[:3, :3], off[:3, :3], atol=1e-12)
 
 
 def test_matches_pyramid_on_constant_depth_levels():
