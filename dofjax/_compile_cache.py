@@ -11,6 +11,7 @@ remains is tracing). The library itself never changes JAX's configuration; the c
 from __future__ import annotations
 
 import os
+import warnings
 
 ENV = "DOFJAX_JAX_CACHE"
 
@@ -34,10 +35,13 @@ def use_compilation_cache(directory: str | None = None) -> str | None:
     cache holds the renders, defocus passes and fits, a few MB each.
 
     Raises:
-        OSError: the directory cannot be created.
+        OSError: a directory that was asked for (argument or environment) cannot be created;
+            when the default one cannot (a read-only home), a warning says so and the cache
+            stays off.
     """
     import jax
 
+    asked = directory is not None or os.environ.get(ENV) is not None
     if directory is None:
         directory = os.environ.get(ENV)
     if directory is None:
@@ -48,8 +52,12 @@ def use_compilation_cache(directory: str | None = None) -> str | None:
     try:
         os.makedirs(directory, exist_ok=True)
     except OSError as exc:
-        raise OSError(f"JAX compilation cache: cannot create directory {directory!r}: "
-                      f"{exc.strerror or exc}") from exc
+        message = (f"JAX compilation cache: cannot create directory {directory!r}: "
+                   f"{exc.strerror or exc}")
+        if asked:
+            raise OSError(message) from exc
+        warnings.warn(message + "; compiling without it", RuntimeWarning, stacklevel=2)
+        return None
     jax.config.update("jax_compilation_cache_dir", directory)
     return directory
 

@@ -50,6 +50,17 @@ def test_uncreatable_directory_names_it(tmp_path, restore_cache_dir):
         dofjax.use_compilation_cache(str(blocker / "cache"))
 
 
+def test_uncreatable_default_directory_warns_and_turns_it_off(tmp_path, restore_cache_dir,
+                                                              monkeypatch):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    jax.config.update("jax_compilation_cache_dir", None)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(blocker))  # a read-only home, say
+    with pytest.warns(RuntimeWarning, match="compiling without it"):
+        assert dofjax.use_compilation_cache() is None
+    assert jax.config.jax_compilation_cache_dir is None
+
+
 def test_cli_reports_an_uncreatable_cache_directory(tmp_path, restore_cache_dir, capsys):
     from dofjax._cli import main
 
