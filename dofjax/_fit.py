@@ -1231,6 +1231,11 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
              max_window, defocus_options, start_steps, screen_steps, scan_points,
              name="fit_focus"):
     rgb, depth, camera, extras = _unpack(name, rgb, depth, camera, model)
+    if ((defocus_options or {}).get("hidden") and extras is not None
+            and extras.layers is not None):
+        raise ValueError(f"{name}: defocus_options hidden=True estimates the hidden background "
+                         "of single-layer input, but the RGBD has peeled layers (they are the "
+                         "hidden surfaces)")
     tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds, s = _validate(
         target, rgb, depth, camera, mask, bounds, fixed, solver, loss, batch,
         dict(starts=(starts, 1), max_steps=(max_steps, 1), start_steps=(start_steps, 1),

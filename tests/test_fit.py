@@ -528,6 +528,16 @@ def test_bad_bounds_and_options():
     _bad("max_steps: must be an integer >= 1", max_steps=2.5)
     _bad("rtol: must be a number >= 0", rtol=-1e-6)
     _bad("atol: must be a number >= 0", atol=float("nan"))
+    _bad("DefocusModel: hidden must be", model=None, defocus_options={"hidden": "yes"})
+
+
+def test_hidden_estimate_with_peeled_layers_is_rejected():
+    rgb, depth = scene()
+    layers = dofjax.Layers(rgb=jnp.stack([rgb, rgb]), depth=jnp.stack([depth, depth + 1.0]),
+                           alpha=jnp.ones((2,) + depth.shape))
+    with pytest.raises(ValueError, match="fit_focus: defocus_options hidden=True.*peeled"):
+        fit_focus(rgb, dofjax.RGBD(rgb=rgb, depth=depth, layers=layers), CAM,
+                  defocus_options={"hidden": True}, **{**KW, "model": None})
 
 
 def test_screen_stops_on_the_way_into_a_known_minimum():
