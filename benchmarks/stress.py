@@ -2,6 +2,7 @@
 
     python benchmarks/stress.py            # prints the table, writes benchmarks/results/stress.md
     python benchmarks/stress.py --method sliced   # -> benchmarks/results/stress_sliced.md
+    python benchmarks/stress.py --method sliced+hidden   # -> results/stress_sliced_hidden.md
 
 Sweeps aperture 1e-6..1e3 (world units, fixed scene), focus 1e-3..1e6, depths exactly on the
 focal plane, depths of 1e-6, background at +inf, HDR colours up to 1e6, in float32 and float64.
@@ -57,7 +58,8 @@ def run_case(kind, focus, aperture, dtype, method="pyramid"):
         depth[14:20, 10:20] = focus
     cam = dofjax.Camera(width=N, height=N, fov=40.0, focus_distance=2.0, aperture_radius=0.1)
     f = dofjax.defocus_fn(rgb.astype(dtype), depth.astype(dtype), cam, window=WINDOW,
-                          method=method)
+                          method=method.split("+")[0],
+                          hidden=True if method.endswith("+hidden") else None)
     w = jnp.asarray(np.random.default_rng(1).random((N, N, 3)), dtype)
 
     def loss(d, a):
@@ -106,14 +108,15 @@ def run_case(kind, focus, aperture, dtype, method="pyramid"):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--method", default="pyramid", choices=("pyramid", "sliced"))
+    ap.add_argument("--method", default="pyramid", choices=("pyramid", "sliced", "sliced+hidden"))
     ap.add_argument("--out", default=None,
                     help="default benchmarks/results/stress.md (pyramid), stress_sliced.md")
     ap.add_argument("--only", type=lambda v: v.split(","), default=None,
                     help="comma-separated case names to run (default all)")
     args = ap.parse_args()
     if args.out is None:
-        name = "stress.md" if args.method == "pyramid" else f"stress_{args.method}.md"
+        name = ("stress.md" if args.method == "pyramid"
+                else f"stress_{args.method.replace('+', '_')}.md")
         args.out = os.path.join(HERE, "results", name)
     cases = []
     for a in (1e-6, 1e-3, 0.1, 10.0, 1e3):
