@@ -36,7 +36,10 @@ def main(argv=None) -> None:
     p.add_argument("--seed", type=int, default=0)
     compile_cache.add_argument(p)
     a = p.parse_args(argv)
-    compile_cache.use_compilation_cache(a.jax_cache)
+    try:
+        compile_cache.use_compilation_cache(a.jax_cache)
+    except OSError as exc:
+        raise SystemExit(f"demo: {exc}") from None
 
     scene = dofjax.load_scene(a.scene)
     cam0 = dofjax.load_camera(a.scene)

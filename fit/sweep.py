@@ -232,7 +232,10 @@ def main(argv=None) -> None:
     p.add_argument("--out", help="output directory (default: next to the manifest)")
     compile_cache.add_argument(p)
     a = p.parse_args(argv)
-    compile_cache.use_compilation_cache(a.jax_cache)
+    try:
+        compile_cache.use_compilation_cache(a.jax_cache)
+    except OSError as exc:
+        raise SystemExit(f"sweep: {exc}") from None
     root = os.path.dirname(os.path.abspath(a.manifest))
     out = a.out or root
     os.makedirs(out, exist_ok=True)
