@@ -62,6 +62,15 @@ def use_compilation_cache(directory: str | None = None) -> str | None:
     return directory
 
 
+def use_in_script(prog: str, directory: str | None) -> str | None:
+    """`use_compilation_cache` for a script: a directory that cannot be created ends it with a
+    one-line message naming `prog` (instead of a traceback)."""
+    try:
+        return use_compilation_cache(directory)
+    except OSError as exc:
+        raise SystemExit(f"{prog}: {exc}") from None
+
+
 def add_argument(parser) -> None:
     """The `--jax-cache DIR` option every command-line tool shares."""
     parser.add_argument(

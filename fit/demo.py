@@ -36,10 +36,7 @@ def main(argv=None) -> None:
     p.add_argument("--seed", type=int, default=0)
     compile_cache.add_argument(p)
     a = p.parse_args(argv)
-    try:
-        compile_cache.use_compilation_cache(a.jax_cache)
-    except OSError as exc:
-        raise SystemExit(f"demo: {exc}") from None
+    compile_cache.use_in_script("demo", a.jax_cache)
 
     scene = dofjax.load_scene(a.scene)
     cam0 = dofjax.load_camera(a.scene)

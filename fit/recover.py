@@ -73,10 +73,7 @@ def main(argv=None) -> None:
     p.add_argument("--out", help="output prefix (default: TARGET without .exr + '.fit')")
     compile_cache.add_argument(p)
     a = p.parse_args(argv)
-    try:
-        compile_cache.use_compilation_cache(a.jax_cache)
-    except OSError as exc:
-        raise SystemExit(f"recover: {exc}") from None
+    compile_cache.use_in_script("recover", a.jax_cache)
     if a.samples is not None and a.method != "lens":
         p.error("--samples is for --method lens only")
     if a.sharp and (a.layers is not None or a.supersample != 1):

@@ -232,10 +232,7 @@ def main(argv=None) -> None:
     p.add_argument("--out", help="output directory (default: next to the manifest)")
     compile_cache.add_argument(p)
     a = p.parse_args(argv)
-    try:
-        compile_cache.use_compilation_cache(a.jax_cache)
-    except OSError as exc:
-        raise SystemExit(f"sweep: {exc}") from None
+    compile_cache.use_in_script("sweep", a.jax_cache)
     root = os.path.dirname(os.path.abspath(a.manifest))
     out = a.out or root
     os.makedirs(out, exist_ok=True)

@@ -68,3 +68,12 @@ def test_cli_reports_an_uncreatable_cache_directory(tmp_path, restore_cache_dir,
     blocker.write_text("not a directory")
     assert main(["--jax-cache", str(blocker / "cache"), "info", str(tmp_path / "none.exr")]) == 2
     assert "compilation cache" in capsys.readouterr().err
+
+
+def test_scripts_end_with_a_message_naming_themselves(tmp_path, restore_cache_dir):
+    from fit import demo
+
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    with pytest.raises(SystemExit, match="^demo: JAX compilation cache: cannot create"):
+        demo.main(["--jax-cache", str(blocker / "cache")])
