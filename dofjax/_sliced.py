@@ -283,8 +283,18 @@ def _level_index(c, levels):
 
 def _level_index_q(q, levels):
     """`_level_index` of sources given by q = sign(c) c^2."""
-    q_lv = np.sign(levels) * levels * levels
-    return jnp.interp(-q, jnp.asarray(-q_lv, q.dtype), jnp.arange(len(levels), dtype=q.dtype))
+    # The levels are symmetric about 0 (index n): index = n - sign(q) g(|q|), g a sum of one
+    # clipped ramp in |q| per bracket of magnitudes, the first bracket's written as a ramp in q
+    # (so the slope at q = 0 is right). Elementwise, fused into the passes that use it:
+    # jnp.interp's binary search and gathers cost ~9 ms per 512 x 512 defocus with one hidden
+    # layer, a ramp per signed bracket ~5 ms, this half of that.
+    n = len(levels) // 2
+    qs = (levels[n:] * levels[n:]).tolist()  # 0, 1, 4, ...: Python floats keep q's dtype
+    a = jnp.abs(q)
+    g = jnp.zeros_like(q)
+    for lo, hi in zip(qs[1:-1], qs[2:]):
+        g = g + jnp.clip((a - lo) * (1.0 / (hi - lo)), 0.0, 1.0)
+    return n - jnp.clip(q * (1.0 / qs[1]), -1.0, 1.0) - jnp.sign(q) * g
 
 
 def _behind(i_hidden, i_visible):
