@@ -437,7 +437,7 @@ RENDERER_SOURCES = ("_reference.py", "_raycast.py", "_intersect.py", "_sampling.
 # The modules of the fit's model and solver: their source hash goes into the results header
 # (not a cache key: nothing of theirs is cached), so a table can be matched to the code it ran.
 MODEL_SOURCES = ("_defocus.py", "_sliced.py", "_kernels.py", "_fit.py", "_autodiff.py",
-                 "_uncertainty.py")
+                 "_uncertainty.py", "_lens.py", "_hidden.py")
 
 
 @functools.cache

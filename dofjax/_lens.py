@@ -17,9 +17,16 @@ every sample is its own pinhole-like ray through the layered scene:
 2. For a lens point l (unit aperture, image right/up axes; `_sampling.aperture_points`, the points
    `render_reference` uses), the ray through pixel x meets the sheet of level c at x + c l (a
    source at z lands at x_pinhole - c l; DESIGN.md section 4): each sheet is read there by
-   Catmull-Rom interpolation (bilinear reads blur: they add up to ~0.15 px^2 per axis, more than
-   the whole blur of a |c| = 0.5 px source; on the data_gen lens-reference cases the model-minus-
-   reference rms fell from 0.026 to 0.022 median), front to back. A source in front of level p
+   Lanczos-3 interpolation (6 x 6 taps, normalised), front to back. Every interpolator blurs
+   what it reads at fractional offsets, and a sub-pixel CoC is blurred mostly by that: bilinear
+   reads add ~0.15 px^2 per axis, more than a |c| = 0.5 px source's own blur (Catmull-Rom
+   reads brought the data_gen lens-reference cases' model-minus-reference rms from 0.026 to
+   0.022 median). On a textured plane at |c| = 0.46 px (lens-reference case 0 at 256 x 256, 39 %
+   of its pixels) Catmull-Rom still blurred ~35 % more than the reference (by the response to
+   the image's Laplacian), which moved the fitted focus distance by -4 %; Lanczos-3 blurs ~2 %
+   more, at ~1.3x the time of Catmull-Rom. (A prefiltered quintic B-spline did as well, but its
+   infinite support made the frame's edge ring ~1e-4 into the image, breaking exact energy
+   conservation.) A source in front of level p
    is hidden by the coverage, met along the ray, of everything in front of level p - 1; one
    behind level p by everything in front of level p (the slices before p and the front part of
    p). So a source never hides its own share of a neighbouring slice, and a surface one bracket
@@ -38,7 +45,7 @@ Hidden surfaces enter only where they lie at least one level behind the visible 
 over a second, continuous in focus and aperture): nearer, the two would share a bracket and the
 visible one would not hide the hidden one.
 
-Cost: samples x slices interpolated reads (4 + 4 separable taps) of the sheet stack (8 channels,
+Cost: samples x slices interpolated reads (6 + 6 separable taps) of the sheet stack (8 channels,
 11 with a mirror); slices without a source are skipped. The slow, accurate method: the quads
 accuracy benchmark (128 x 96, max |c| 12 px, 3 layers) runs in ~2 s; at 256 x 256 with |c| up to
 8 px on every slice a forward pass takes 30 s, ~3000x the sliced method, and `jacfwd`/`grad`
@@ -79,6 +86,31 @@ def lens_points(samples: int, blades, rotation, ratio) -> np.ndarray:
     with jax.ensure_compile_time_eval():
         p = aperture_points(jnp.asarray(u), shape, blades, rotation, ratio)
     return np.asarray(p, np.float64)
+
+
+# Half-width (taps per side) of the Lanczos reads (`interp="lanczos"`): 3, so 6 x 6 taps.
+LANCZOS_A = 3
+
+
+def _read_weights(frac: np.ndarray, interp: str):
+    """(..., taps) weights and the first tap's offset of reads at fractional positions `frac`
+    (host float64) by `interp`: "lanczos" (Lanczos-3: sinc(x) sinc(x / 3) on taps -2..3,
+    normalised to sum to 1), "cubic" (Catmull-Rom, taps -1..2) or "linear" (taps 0..1). Each
+    reproduces the samples at integer offsets and has compact support (an edge rings at most
+    a = 3 px away)."""
+    if interp == "lanczos":
+        offs = np.arange(1 - LANCZOS_A, LANCZOS_A + 1)
+        x = frac[..., None] - offs
+        w = np.sinc(x) * np.sinc(x / LANCZOS_A)
+        return w / w.sum(-1, keepdims=True), int(offs[0])
+    if interp == "cubic":
+        t = frac[..., None]
+        w = np.concatenate([(-t**3 + 2 * t**2 - t) / 2, (3 * t**3 - 5 * t**2 + 2) / 2,
+                            (-3 * t**3 + 4 * t**2 + t) / 2, (t**3 - t**2) / 2], -1)
+        return w, -1
+    if interp == "linear":
+        return np.stack([1.0 - frac, frac], -1), 0
+    raise ValueError(f"lens_defocus: interp must be 'lanczos', 'cubic' or 'linear', got {interp!r}")
 
 
 def levels(window: float, spacing: float = SLICE_SPACING) -> np.ndarray:
@@ -153,11 +185,12 @@ def _sheets(sources, n):
 def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rotation=0.0,
                  ratio=1.0, reflection=None, reflection_depth=None, layers=None,
                  samples: int = LENS_SAMPLES, spacing: float = SLICE_SPACING, weights="q",
-                 interp="cubic", hidden: bool = True):
+                 interp="lanczos", hidden: bool = True):
     """Defocus by lens-sampled slices (module docstring); pure and jittable (`window`, shape,
     `samples`, `spacing`, `weights` and `interp` static). Arguments as `dofjax.defocus`; no input
-    validation here. `weights`: "q" (split linear in c |c|) or "c"; `interp`: "cubic"
-    (Catmull-Rom) or "linear" (bilinear) reads: the alternatives measured in the docstring.
+    validation here. `weights`: "q" (split linear in c |c|) or "c"; `interp`: "lanczos"
+    (Lanczos-3), "cubic" (Catmull-Rom) or "linear" (bilinear) reads: the alternatives measured
+    in the module docstring.
 
     Single-layer input (`layers=None`) gets the hidden-background estimate as its extra source
     (unless `hidden` is False).
@@ -174,18 +207,21 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
         c_r = jnp.clip(coc_radius(reflection_depth, camera).astype(dtype), -window, window)
         refl_sheets = _split(_index(c_r, lv, weights), len(lv))[..., None] * reflection[None]
         stack = jnp.concatenate([stack, refl_sheets], -1)
-    # the widest read is window * max|l| (+2 for the cubic taps) beyond the frame
+    # the widest read is window * max|l| (+ the interpolation's taps) beyond the frame
     pts = lens_points(samples, blades, rotation, ratio)
-    pad = int(math.ceil(window * float(np.abs(pts).max()))) + 2
-    stack = jnp.pad(stack, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
-    chans = stack.shape[-1]
-    used = jnp.any(stack != 0, axis=(1, 2, 3))  # (S,): slices with a source
-    # per lens point and slice: the read's integer offset and fractional part (host constants)
+    # per lens point and slice: the read's integer offset and each axis's tap weights (host)
     dx = lv[None, :] * pts[:, 0:1]  # image right: + column
     dy = -lv[None, :] * pts[:, 1:2]  # image up: - row
     ix, iy = np.floor(dx), np.floor(dy)
-    offsets = jnp.asarray(np.stack([iy, ix], -1).astype(np.int32) + pad)
-    fracs = jnp.asarray(np.stack([dy - iy, dx - ix], -1), dtype)
+    wy, first = _read_weights(dy - iy, interp)
+    wx, _ = _read_weights(dx - ix, interp)
+    taps = wx.shape[-1]
+    pad = int(math.ceil(window * float(np.abs(pts).max()))) + taps
+    stack = jnp.pad(stack, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
+    chans = stack.shape[-1]
+    used = jnp.any(stack != 0, axis=(1, 2, 3))  # (S,): slices with a source
+    offsets = jnp.asarray(np.stack([iy, ix], -1).astype(np.int32) + pad + first)
+    weights_yx = jnp.asarray(np.stack([wy, wx], -2), dtype)  # (samples, S, 2, taps)
 
     zeros = jnp.zeros((height, width), dtype)
 
@@ -193,27 +229,15 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
         # one slice, front to back along one ray: `hidden` is the coverage of the slices nearer
         # than the previous one, `prev_cover`/`prev_front` the previous slice's (all / in front)
         hidden, prev_cover, prev_front, colour, cover, refl = carry
-        img, off, frac, occupied = x
+        img, off, w_yx, occupied = x
 
         def read(_):
-            fy, fx = frac[0], frac[1]
-            if interp == "cubic":  # Catmull-Rom: taps -1..2, separable, no added second moment
-                def cr(t):
-                    t2, t3 = t * t, t * t * t
-                    return ((-t3 + 2 * t2 - t) / 2, (3 * t3 - 5 * t2 + 2) / 2,
-                            (-3 * t3 + 4 * t2 + t) / 2, (t3 - t2) / 2)
-                wx, wy = cr(fx), cr(fy)
-                rows = sum(wx[j] * jax.lax.dynamic_slice(
-                    img, (off[0] - 1, off[1] + j - 1, jnp.int32(0)), (height + 3, width, chans))
-                    for j in range(4))
-                g = sum(wy[i] * rows[i: i + height] for i in range(4))
-            else:
-                def tap(oy, ox):
-                    start = (off[0] + oy, off[1] + ox, jnp.int32(0))
-                    return jax.lax.dynamic_slice(img, start, (height, width, chans))
-
-                g = ((1 - fy) * ((1 - fx) * tap(0, 0) + fx * tap(0, 1))
-                     + fy * ((1 - fx) * tap(1, 0) + fx * tap(1, 1)))
+            # separable: `taps` column-shifted reads of height + taps - 1 rows, then the rows
+            w_y, w_x = w_yx[0], w_yx[1]
+            rows = sum(w_x[j] * jax.lax.dynamic_slice(
+                img, (off[0], off[1] + j, jnp.int32(0)), (height + taps - 1, width, chans))
+                for j in range(taps))
+            g = sum(w_y[i] * rows[i: i + height] for i in range(taps))
             # sources in front of this level (in the bracket from the previous level) are
             # hidden by everything in front of the previous level; those behind it by
             # everything in front of this level, the previous slice and the front part here
@@ -238,17 +262,17 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
 
     @jax.checkpoint  # reverse mode keeps one carry per lens point, recomputes the sheets
     def ray(carry, x):
-        off, frac = x
+        off, w = x
         refl0 = jnp.zeros((height, width, 3 if mirror else 0), dtype)
         init = (zeros, zeros, zeros, jnp.zeros((height, width, 3), dtype), zeros, refl0)
         (_, _, _, colour, cover, refl), _ = jax.lax.scan(sheet, init,
-                                                          (stack, off, frac, used))
+                                                          (stack, off, w, used))
         c_acc, v_acc, r_acc = carry
         return (c_acc + colour, v_acc + cover, r_acc + refl), None
 
     init = (jnp.zeros((height, width, 3), dtype), zeros,
             jnp.zeros((height, width, 3 if mirror else 0), dtype))
-    (colour, cover, refl), _ = jax.lax.scan(ray, init, (offsets, fracs))
+    (colour, cover, refl), _ = jax.lax.scan(ray, init, (offsets, weights_yx))
     # each ray's coverage is at most 1: below `samples` in total, the visible part is renormalised
     out = safe_div(colour, cover[..., None])
     if mirror:
