@@ -123,7 +123,7 @@ def main(argv=None) -> None:
               f"A={sp_a:.6g}")
         return
     rows = [
-        ("dofjax.fit_focus (LM, %d starts, median of %d)" % (a.starts, a.repeats),
+        (f"dofjax.fit_focus (LM, {a.starts} starts, median of {a.repeats})",
          f"{ours:.2f}", f"{float(res.focus_distance):.6g}", f"{float(res.aperture_radius):.6g}",
          str(int(res.steps))),
         ("  compile (first call minus median)", f"{compile_s:.1f}", "", "", ""),
@@ -136,7 +136,8 @@ def main(argv=None) -> None:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     ratio = scipy_s / ours
-    text = (f"# fit speed, {a.size}x{a.size} quads.json, window {a.window} px, defocus method {a.method}, "
+    text = (f"# fit speed, {a.size}x{a.size} quads.json, window {a.window} px, defocus method "
+            f"{a.method}, "
             f"{os.cpu_count()} CPUs (load average {os.getloadavg()[0]:.1f}), screen_steps "
             f"{screen}, scan_points {scan}\n\n"
             f"truth d={truth['focus_distance']} A={truth['aperture_radius']}, guess "

@@ -172,7 +172,8 @@ def main(argv=None) -> int:
         f"`python benchmarks/raycast.py --size {size}` on {platform.machine()} with "
         f"{os.cpu_count()} CPU cores (shared), jax {jax.__version__}, {dtype}, spp = 1. "
         f"Median of {args.repeats} runs after a warm-up; compile = warm-up time minus the median. "
-        f"1-minute load average at the end: {load:.1f} (above the core count, timings are inflated).",
+        f"1-minute load average at the end: {load:.1f} (above the core count, timings are "
+        "inflated).",
         "",
         "| scene | primitives | ms / frame | Mrays/s (primary) | compile s |",
         "|---|---:|---:|---:|---:|",

@@ -161,7 +161,8 @@ def defocus_rows(scene, cam, truth, setting, args) -> list[dict]:
             lambda layers=layers: dofjax.render(scene, cam, spp=args.sharp_spp, layers=layers),
             args.runs,
         )
-        out, t_fwd, c_fwd, _ = timed(lambda rgbd=rgbd: dofjax.defocus(rgbd, cam, **shape), args.runs)
+        out, t_fwd, c_fwd, _ = timed(lambda rgbd=rgbd: dofjax.defocus(rgbd, cam, **shape),
+                                     args.runs)
         # Forward + reverse-mode gradient of an image loss w.r.t. (focus, aperture), through the
         # jittable entry point with the window the forward call chose (the image's largest |c|).
         f = dofjax.defocus_fn(rgbd, cam, window=max(max_abs_coc(rgbd, cam), 1.0), **shape)
@@ -307,7 +308,8 @@ def plot(results: list[dict], path: Path):
     fig, axes = plt.subplots(rows, cols, figsize=(11, 3.6 * rows), squeeze=False)
     names = []
     for res in results:
-        names += [r["method"] for r in res["rows"] if r["kind"] != "lens" and r["method"] not in names]
+        names += [r["method"] for r in res["rows"]
+                  if r["kind"] != "lens" and r["method"] not in names]
     # One marker and colour per method across all panels.
     style = {m: ("osD^vP*X"[i % 8], f"C{i % 10}") for i, m in enumerate(names)}
     for ax, res in zip(axes.flat, results, strict=False):

@@ -123,8 +123,8 @@ class Camera(eqx.Module):
         under 2 % for d > 50 f.
 
         Raises:
-            ValueError: focal_length, f_number or sensor_width <= 0, or focus_distance <= focal_length
-                (a thin lens cannot focus inside its focal length).
+            ValueError: focal_length, f_number or sensor_width <= 0, or focus_distance <=
+                focal_length (a thin lens cannot focus inside its focal length).
         """
         for name, value in (
             ("focal_length", focal_length),

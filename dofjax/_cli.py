@@ -201,7 +201,8 @@ def _run_reference(args: argparse.Namespace, scene, camera) -> int:
     import dofjax
 
     if args.layers is not None:
-        raise ValueError("--layers: cannot be combined with --reference (the reference is RGB only)")
+        raise ValueError("--layers: cannot be combined with --reference (the reference is RGB "
+                         "only)")
     start = time.perf_counter()
     rgb = dofjax.render_reference(
         scene, camera, spp=args.spp, key=jax.random.key(args.seed), progress=True

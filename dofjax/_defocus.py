@@ -72,8 +72,7 @@ from ._kernels import (
     moment_table,
     up2,
 )
-from ._lens import LENS_SAMPLES, lens_defocus
-from ._lens import levels as lens_levels
+from ._lens import LENS_SAMPLES, lens_defocus, levels as lens_levels
 from ._numerics import box_pool, inverse_depth
 from ._rgbd import RGBD, Layers
 from ._sliced import sliced_defocus, sliced_defocus_adjoint, sliced_defocus_jacobian

@@ -73,8 +73,7 @@ from ._autodiff import value_and_jacobian
 from ._camera import Camera, coc_radius
 from ._defocus import supersampling
 from ._linalg import ThinQR, unit_column_svd
-from ._numerics import box_pool as _pool
-from ._numerics import inverse_depth, safe_div
+from ._numerics import box_pool as _pool, inverse_depth, safe_div
 from ._rgbd import RGBD, Layers
 
 PARAMS = ("focus_distance", "aperture_radius")

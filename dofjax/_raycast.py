@@ -589,13 +589,14 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
     a sphere, a box or a closed triangle mesh is skipped (a triangle whose three edges are each
     shared with exactly one other triangle is part of a closed mesh, found on the host; it faces
     where its winding normal `(v1 - v0) x (v2 - v0)` points, counter-clockwise as in OBJ files);
-    quads and open triangles are two-sided cards and count from both sides. Layer 0 has alpha 1 everywhere (on a miss it is the
-    background, depth +inf); a hidden layer has alpha 1 where its ray entered a surface. Where the
-    ray escapes after k >= 1 surfaces, layer k and all after it have alpha 0, depth +inf and the
-    background colour (the background is not peeled as a hidden surface: where the defocus
-    uncovers nothing it renormalises). An infinite plane is opaque: nothing follows it (alpha 0
-    after it), nor a layer-0 hit on the inside of a closed object (the eye is inside). So alpha 0
-    on a hidden layer means "nothing more to see", never "the background is there".
+    quads and open triangles are two-sided cards and count from both sides. Layer 0 has alpha 1
+    everywhere (on a miss it is the background, depth +inf); a hidden layer has alpha 1 where its
+    ray entered a surface. Where the ray escapes after k >= 1 surfaces, layer k and all after it
+    have alpha 0, depth +inf and the background colour (the background is not peeled as a hidden
+    surface: where the defocus uncovers nothing it renormalises). An infinite plane is opaque:
+    nothing follows it (alpha 0 after it), nor a layer-0 hit on the inside of a closed object (the
+    eye is inside). So alpha 0 on a hidden layer means "nothing more to see", never "the
+    background is there".
     With spp > 1, hidden layers keep the pixel centre's depth and alpha, and their colour is
     box-filtered like rgb: the average over the pixel's samples of the same surface, wherever in
     the sample's own peel it appears (matched by depth; see `_box_filter_layers`). A peeled layer

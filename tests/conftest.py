@@ -1,6 +1,7 @@
 """Tests run in float64 so gradient checks against finite differences are meaningful.
 
-Forward accuracy in float32 is tested explicitly where it matters (`dtype` arguments, `jnp.float32`).
+Forward accuracy in float32 is tested explicitly where it matters (`dtype` arguments,
+`jnp.float32`).
 
 Most of the suite's time is XLA compilation, and many tests compile the same programs (the same
 defocus or fit at the same shapes from separate closures, pytest-xdist workers, or the

@@ -63,7 +63,8 @@ def test_coc_sign_and_background():
 
 def test_coc_gradient_finite_at_background():
     cam = Camera(64, 64, 50.0, 3.0, 0.02)
-    g = jax.grad(lambda a: coc_radius(jnp.array([jnp.inf, 1.0]), cam.replace(aperture_radius=a)).sum())(
+    g = jax.grad(lambda a: coc_radius(jnp.array([jnp.inf, 1.0]),
+                                      cam.replace(aperture_radius=a)).sum())(
         0.02
     )
     assert np.isfinite(float(g))
@@ -81,8 +82,9 @@ def test_seed_formulas_agree_after_unit_conversion(z):
     demers = abs(a * f * (z - d) / (z * (d - f)))
     # We keep the field of view fixed (no focus breathing): the difference is exactly d / (d - f).
     assert ours == pytest.approx(demers / 2 * px_per_sensor_unit * (d - f) / d, rel=1e-5)
-    # Yu 2004: diameter |a (s (1/f - 1/z) - 1)|, s the lens-to-screen distance, here for a lens focused
-    # at d (s = f d / (d - f)); same law, same d / (d - f) factor from the fixed field of view.
+    # Yu 2004: diameter |a (s (1/f - 1/z) - 1)|, s the lens-to-screen distance, here for a lens
+    # focused at d (s = f d / (d - f)); same law, same d / (d - f) factor from the fixed field of
+    # view.
     s = f * d / (d - f)
     yu = abs(a * (s * (1 / f - 1 / z) - 1))
     assert ours == pytest.approx(yu / 2 * px_per_sensor_unit * (d - f) / d, rel=1e-5)

@@ -1,4 +1,5 @@
-"""Soft-disc defocus tests: brute-force scatter, occlusion, layers, mirrors, bokeh, skips, errors."""
+"""Soft-disc defocus tests: brute-force scatter, occlusion, layers, mirrors, bokeh, skips and
+errors."""
 
 import math
 

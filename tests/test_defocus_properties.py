@@ -4,8 +4,7 @@ convolution (scipy), more aperture never sharper, energy conserved away from the
 import numpy as np
 import pytest
 import scipy.signal
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from dofjax import Camera, defocus_fn
 from dofjax._kernels import R0, soft_kernel

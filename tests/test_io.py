@@ -10,8 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import OpenImageIO as oiio
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 import dofjax
 from dofjax._io import srgb_decode, srgb_encode

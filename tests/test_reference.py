@@ -23,8 +23,8 @@ from dofjax._sampling import (
     aperture_points,
     concentric_disc,
     grid_shape,
-    regular_polygon,
     permute,
+    regular_polygon,
     unit_square_samples,
 )
 from dofjax._scene import Materials, Planes, Quads, Scene, Spheres
