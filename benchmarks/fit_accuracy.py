@@ -47,6 +47,7 @@ Writes benchmarks/results/fit_accuracy_{suite,noise,reference}.md, .json (per-ca
 from __future__ import annotations
 
 import argparse
+import ast
 import functools
 import hashlib
 import json
@@ -440,11 +441,26 @@ MODEL_SOURCES = ("_defocus.py", "_sliced.py", "_kernels.py", "_fit.py", "_autodi
                  "_uncertainty.py", "_lens.py", "_hidden.py")
 
 
+def _code_of(source: str) -> str:
+    """The code of a module's source without its docstrings and comments (`ast.dump` of the
+    tree with every docstring removed): what a cache key should change with."""
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        scope = (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)
+        if (isinstance(node, scope) and body and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return ast.dump(tree)
+
+
 @functools.cache
 def renderer_hash(sources=RENDERER_SOURCES) -> str:
-    """sha256 (16 hex digits) of the source of the dofjax modules the reference render uses (or of
-    `sources`). Cached: read once (`main` calls it at the start, next to importing dofjax), so a
-    source edited during a run does not change the key or the header half-way."""
+    """sha256 (16 hex digits) of the code of the dofjax modules the reference render uses (or of
+    `sources`), docstrings and comments left out (`_code_of`: rewording them does not discard
+    the cached references). Cached: read once (`main` calls it at the start, next to importing
+    dofjax), so a source edited during a run does not change the key or the header half-way."""
     import dofjax
 
     h = hashlib.sha256()
@@ -453,8 +469,8 @@ def renderer_hash(sources=RENDERER_SOURCES) -> str:
         path = os.path.join(root, name)
         h.update(name.encode())
         if os.path.exists(path):
-            with open(path, "rb") as f:
-                h.update(f.read())
+            with open(path, encoding="utf-8") as f:
+                h.update(_code_of(f.read()).encode())
     return h.hexdigest()[:16]
 
 
