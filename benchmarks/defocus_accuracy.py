@@ -12,8 +12,9 @@ Reference: `render_reference` at --spp samples per pixel, rendered as two indepe
 (--spp/2 each, PRNG seeds s and s+1) and averaged. Their difference measures the reference's own
 noise: noise RMSE of the average = RMSE(half1 - half2) / 2. If that exceeds --noise-target, spp is
 quadrupled (up to --max-spp) until it does not. Halves are cached as .npy under
-benchmarks/results/cache/ (git-ignored), keyed by the scene file's contents, camera, size and spp,
-so a rerun only redoes the defocus.
+benchmarks/results/cache/ (git-ignored), keyed by the scene file's contents, camera, size, spp,
+dtype and the renderer's code (docstrings and comments left out), so a rerun only redoes the
+defocus, and a changed renderer re-renders.
 
 Compared, for every sharp-input spp in --sharp-spp (the sharp render box-filters each pixel over
 spp stratified, jittered positions, `_sampling.pixel_positions`, the ones the reference uses;
@@ -49,6 +50,7 @@ import time
 import jax
 import numpy as np
 import scipy.ndimage as ndi
+from _common import code_hash, method_options
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 import dofjax
@@ -95,7 +97,9 @@ def guarded(cam, guard):
 
 
 def reference_half(scene, cam, path, spp, seed, cache):
-    """One half of the reference (spp samples, PRNG seed), cached on disk."""
+    """One half of the reference (spp samples, PRNG seed), cached on disk under a key of the
+    scene file's contents, camera, spp, seed, dtype and the renderer's code
+    (`_common.code_hash`)."""
     with open(path, "rb") as fh:
         contents = fh.read()
     tag = json.dumps(dict(
@@ -103,7 +107,8 @@ def reference_half(scene, cam, path, spp, seed, cache):
         fov=float(cam.fov), focus=float(cam.focus_distance),
         aperture=float(cam.aperture_radius), eye=np.asarray(cam.eye).tolist(),
         target=np.asarray(cam.target).tolist(), up=np.asarray(cam.up).tolist(), spp=spp,
-        seed=seed), sort_keys=True)
+        seed=seed, dtype=str(np.dtype(jax.numpy.result_type(float))), code=code_hash()),
+        sort_keys=True)
     digest = hashlib.sha256(tag.encode()).hexdigest()[:16]
     file = os.path.join(cache, f"accuracy_ref_{digest}.npy")
     if os.path.exists(file):
@@ -252,14 +257,6 @@ def run_scene(path, args):
                 aperture=float(cam.aperture_radius))
 
 
-def method_options(token):
-    """`defocus` keywords of a --methods token: a method, or "sliced+hidden" (the sliced
-    method with the hidden-background estimate of single-layer input)."""
-    if token.endswith("+hidden"):
-        return dict(method=token.split("+")[0], hidden=True)
-    return dict(method=token)
-
-
 def guarded_variants(methods, layers, sharp, cam, margin, tag):
     """(label, {f}) rows of every method on a guard-band render `sharp` (an RGBD for
     `cam.padded(margin)`, or finer: supersampled), single layer and layered; `defocus(...,
@@ -379,6 +376,12 @@ def main():
     args = ap.parse_args()
     args.sharp_spp = [int(s) for s in args.sharp_spp.split(",")]
     args.methods = args.methods.split(",")
+    for token in args.methods:
+        try:
+            method_options(token)
+        except ValueError as e:
+            ap.error(str(e))
+    code_hash()  # the renderer code this run imported: read once, before any reference
     if args.spp < 2 or args.spp % 2:
         ap.error(f"--spp must be an even integer >= 2, got {args.spp}")
     paths = scene_paths()

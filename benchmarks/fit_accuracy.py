@@ -47,8 +47,6 @@ Writes benchmarks/results/fit_accuracy_{suite,noise,reference}.md, .json (per-ca
 from __future__ import annotations
 
 import argparse
-import ast
-import functools
 import hashlib
 import json
 import math
@@ -59,6 +57,7 @@ import time
 
 import jax
 import numpy as np
+from _common import code_hash
 from tqdm import tqdm
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -428,55 +427,15 @@ def noise_study(args) -> None:
 # c. Lens-sampling reference targets.
 
 
-# The modules `render_reference` runs (and `scene_from_dict`, which builds its scene): their
-# source goes into the reference cache key, so a changed renderer re-renders instead of reusing a
-# stale target.
-RENDERER_SOURCES = ("_reference.py", "_raycast.py", "_intersect.py", "_sampling.py", "_scene.py",
-                    "_scenefile.py", "_camera.py", "_textures.py", "_numerics.py", "_rgbd.py")
-
-
 # The modules of the fit's model and solver: their source hash goes into the results header
 # (not a cache key: nothing of theirs is cached), so a table can be matched to the code it ran.
 MODEL_SOURCES = ("_defocus.py", "_sliced.py", "_kernels.py", "_fit.py", "_autodiff.py",
                  "_uncertainty.py", "_lens.py", "_hidden.py")
 
 
-def _code_of(source: str) -> str:
-    """The code of a module's source without its docstrings and comments (`ast.dump` of the
-    tree with every docstring removed): what a cache key should change with."""
-    tree = ast.parse(source)
-    for node in ast.walk(tree):
-        body = getattr(node, "body", None)
-        scope = (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)
-        if (isinstance(node, scope) and body and isinstance(body[0], ast.Expr)
-                and isinstance(body[0].value, ast.Constant)
-                and isinstance(body[0].value.value, str)):
-            node.body = body[1:] or [ast.Pass()]
-    return ast.dump(tree)
-
-
-@functools.cache
-def renderer_hash(sources=RENDERER_SOURCES) -> str:
-    """sha256 (16 hex digits) of the code of the dofjax modules the reference render uses (or of
-    `sources`), docstrings and comments left out (`_code_of`: rewording them does not discard
-    the cached references). Cached: read once (`main` calls it at the start, next to importing
-    dofjax), so a source edited during a run does not change the key or the header half-way."""
-    import dofjax
-
-    h = hashlib.sha256()
-    root = os.path.dirname(os.path.abspath(dofjax.__file__))
-    for name in sources:
-        path = os.path.join(root, name)
-        h.update(name.encode())
-        if os.path.exists(path):
-            with open(path, encoding="utf-8") as f:
-                h.update(_code_of(f.read()).encode())
-    return h.hexdigest()[:16]
-
-
 def reference_target(case: dict, spp: int, cache: str) -> tuple[np.ndarray, bool]:
     """`render_reference` of the case's scene and true camera at `spp`, cached on disk under a key
-    of the scene, camera, spp, random key, dtype and the renderer's source (`renderer_hash`)."""
+    of the scene, camera, spp, random key, dtype and the renderer's source (`_common.code_hash`)."""
     import dofjax
 
     cam = case["camera"]
@@ -486,7 +445,7 @@ def reference_target(case: dict, spp: int, cache: str) -> tuple[np.ndarray, bool
                         "target": np.asarray(cam.target).tolist(),
                         "up": np.asarray(cam.up).tolist(), "truth": case["truth"], "spp": spp,
                         "key": key_seed, "dtype": str(np.dtype(jax.numpy.result_type(float))),
-                        "code": renderer_hash()},
+                        "code": code_hash()},
                        sort_keys=True)
     digest = hashlib.sha256(ident.encode()).hexdigest()[:16]
     path = os.path.join(cache, f"fitref_{digest}.npy")
@@ -620,8 +579,8 @@ def ref_config(args) -> str:
             f"{f' ({args.ref_samples} lens points)' if args.ref_samples else ''}"
             f"{finer}"
             f"; renderer source hash "
-            f"{renderer_hash()} (in the cache key), model/fit source hash "
-            f"{renderer_hash(MODEL_SOURCES)}.\n")
+            f"{code_hash()} (in the cache key), model/fit source hash "
+            f"{code_hash(MODEL_SOURCES)}.\n")
 
 
 def reference(args) -> None:
@@ -858,7 +817,7 @@ def main(argv=None) -> None:
     if args.window is None:
         args.window = max(2.0, 16.0 * args.size / 256.0)
     os.makedirs(RESULTS, exist_ok=True)
-    renderer_hash(), renderer_hash(MODEL_SOURCES)  # the sources this run imported
+    code_hash(), code_hash(MODEL_SOURCES)  # the sources this run imported
     parts = [n for n in ("suite", "noise", "reference") if getattr(args, n)] or \
         ["suite", "noise", "reference"]
     for name in parts:

@@ -25,6 +25,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from _common import method_options  # noqa: E402
 
 import dofjax  # noqa: E402
 
@@ -58,8 +59,7 @@ def run_case(kind, focus, aperture, dtype, method="pyramid"):
         depth[14:20, 10:20] = focus
     cam = dofjax.Camera(width=N, height=N, fov=40.0, focus_distance=2.0, aperture_radius=0.1)
     f = dofjax.defocus_fn(rgb.astype(dtype), depth.astype(dtype), cam, window=WINDOW,
-                          method=method.split("+")[0],
-                          hidden=True if method.endswith("+hidden") else None)
+                          **method_options(method))
     w = jnp.asarray(np.random.default_rng(1).random((N, N, 3)), dtype)
 
     def loss(d, a):

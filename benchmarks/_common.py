@@ -1,0 +1,61 @@
+"""Helpers the benchmark scripts share: the `--methods` tokens and the source hash that keys the
+cached lens-sampling references.
+
+The scripts run as `python benchmarks/NAME.py`, so this directory is on `sys.path` and they
+import this module as `_common`.
+"""
+
+from __future__ import annotations
+
+import ast
+import functools
+import hashlib
+import os
+
+# The modules `render_reference` runs (and `scene_from_dict`, which builds its scene): their code
+# goes into the reference caches' keys, so a changed renderer re-renders instead of reusing a
+# stale reference.
+RENDERER_SOURCES = ("_reference.py", "_raycast.py", "_intersect.py", "_sampling.py", "_scene.py",
+                    "_scenefile.py", "_camera.py", "_textures.py", "_numerics.py", "_rgbd.py")
+
+
+def method_options(token: str) -> dict:
+    """`dofjax.defocus` keywords of a `--methods` token: a method name, or `METHOD+hidden` (the
+    method with the hidden-background estimate of single-layer input, `hidden=True`)."""
+    method, plus, extra = token.partition("+")
+    if plus and extra != "hidden":
+        raise ValueError(f"unknown method token {token!r}: expected a method or METHOD+hidden")
+    return dict(method=method, hidden=True) if plus else dict(method=method)
+
+
+def _code_of(source: str) -> str:
+    """The code of a module's source without its docstrings and comments (`ast.dump` of the
+    tree with every docstring removed): what a cache key should change with."""
+    tree = ast.parse(source)
+    scope = (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(node, scope) and body and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return ast.dump(tree)
+
+
+@functools.cache
+def code_hash(sources: tuple[str, ...] = RENDERER_SOURCES) -> str:
+    """sha256 (16 hex digits) of the code of the named dofjax modules, docstrings and comments
+    left out (`_code_of`: rewording them does not discard cached references). Cached: read once
+    (call it at the start of a run, next to importing dofjax), so a source edited during a run
+    changes neither the key nor the header half-way."""
+    import dofjax
+
+    h = hashlib.sha256()
+    root = os.path.dirname(os.path.abspath(dofjax.__file__))
+    for name in sources:
+        path = os.path.join(root, name)
+        h.update(name.encode())
+        if os.path.exists(path):
+            with open(path, encoding="utf-8") as f:
+                h.update(_code_of(f.read()).encode())
+    return h.hexdigest()[:16]
