@@ -35,7 +35,8 @@ c. --reference: targets from `dofjax.render_reference` at `--spp` (cached in
    `border_px`). `--ref-layers 0 --ref-border 0 --ref-sharp-spp 16` is the earlier
    configuration (visible surface only, every pixel). The table ends with where the model
    differs from the reference at the true camera (`mismatch_split`: near depth edges, and off
-   them by |CoC|).
+   them by |CoC|), and how far each of those regions pulls the fit from the truth
+   (`gauss_newton_split`: the Gauss-Newton step from the truth, split by region).
 
 `--loss huber|cauchy` fits with a robust loss (its scale estimated from the data) in every part.
 
@@ -517,24 +518,62 @@ MISMATCH_BINS = ((0.0, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, math.inf))
 MISMATCH_EDGE_PX = 3.0
 
 
-def mismatch_split(residual, depth, coc, weight) -> dict:
-    """Where the model differs from the reference at the true camera: the share of the squared
-    residual (over the `weight` pixels) within MISMATCH_EDGE_PX of a depth edge of the sharp
-    render (`edge_mask`), and in each |CoC| bin of MISMATCH_BINS off the edges, with the
-    fraction of pixels and the rms there (image units)."""
-    e2 = np.sum(np.square(residual), axis=-1) * weight
-    total = float(e2.sum())
+def mismatch_regions(depth, coc) -> dict:
+    """The regions of `mismatch_split` and `gauss_newton_split` (name -> (H, W) bool, disjoint,
+    covering the image): within MISMATCH_EDGE_PX of a depth edge of the sharp render
+    (`edge_mask`), and each |CoC| bin of MISMATCH_BINS off the edges."""
     off = edge_mask(depth, MISMATCH_EDGE_PX)
     edge = np.zeros(depth.shape, bool) if off is None else ~off
     regions = {"edges": edge}
     for lo, hi in MISMATCH_BINS:
         regions[f"c {lo:g}-{hi:g} px"] = ~edge & (np.abs(coc) >= lo) & (np.abs(coc) < hi)
+    return regions
+
+
+def mismatch_split(residual, depth, coc, weight) -> dict:
+    """Where the model differs from the reference at the true camera: the share of the squared
+    residual (over the `weight` pixels) in each of `mismatch_regions`, with the fraction of
+    pixels and the rms there (image units)."""
+    e2 = np.sum(np.square(residual), axis=-1) * weight
+    total = float(e2.sum())
+    regions = mismatch_regions(depth, coc)
     out = {}
     for name, m in regions.items():
         w = weight * m
         out[name] = {"pixels": float(w.sum() / weight.sum()),
                      "share": float(e2[m].sum() / total) if total > 0 else 0.0,
                      "rms": float(np.sqrt(e2[m].sum() / (3 * w.sum()))) if w.sum() > 0 else 0.0}
+    return out
+
+
+# Relative step of the central differences in `gauss_newton_split` (in ln d and ln A)
+GN_STEP = 1e-3
+
+
+def gauss_newton_split(model, residual, camera, regions, weight) -> dict:
+    """Which pixels pull the fit away from the true camera, and how far: the Gauss-Newton step
+    from the truth, -(J^T W J)^-1 J^T W r in (ln d, ln A), split into one term per region
+    (J_R^T W_R r_R of that region's pixels; the terms add up to the whole step). J by central
+    differences of `model(camera)` (relative steps GN_STEP), r = `residual` (model minus target
+    at `camera`), W = `weight`. Returns {region: (d step, A step)} as relative changes, and
+    "all": the whole step. A first-order picture of the mismatch's bias: the fit ends where the
+    steps from its own end point vanish, not after this one step."""
+    def image(d, a):
+        return np.asarray(model(camera.replace(focus_distance=d, aperture_radius=a)), float)
+
+    d0, a0 = float(camera.focus_distance), float(camera.aperture_radius)
+    e = math.exp(GN_STEP)
+    cols = [(image(d0 * e, a0) - image(d0 / e, a0)) / (2 * GN_STEP),
+            (image(d0, a0 * e) - image(d0, a0 / e)) / (2 * GN_STEP)]
+    jac = np.stack([c.reshape(-1) for c in cols], axis=1)  # (pixels * 3, 2)
+    w = np.repeat(weight.reshape(-1), residual.shape[-1])
+    r = np.asarray(residual, float).reshape(-1)
+    jtj_inv = np.linalg.pinv(jac.T @ (w[:, None] * jac))
+    out = {}
+    for name, m in list(regions.items()) + [("all", np.ones(weight.shape, bool))]:
+        wm = w * np.repeat(m.reshape(-1), residual.shape[-1])
+        step = -jtj_inv @ (jac.T @ (wm * r))
+        out[name] = tuple(float(math.expm1(x)) for x in step)
     return out
 
 
@@ -636,6 +675,9 @@ def reference(args) -> None:
 
         coc = np.asarray(dofjax.coc_radius(case["depth"], case["camera"]))
         row["mismatch"] = mismatch_split(at_truth, np.asarray(case["depth"]), coc, w)
+        row["gauss_newton_split"] = gauss_newton_split(
+            lambda cam: forward(*inputs, cam, **extras), at_truth, case["camera"],
+            mismatch_regions(np.asarray(case["depth"]), coc), w)
         row.update(reference_seconds=None if cached else render_s, max_coc_px=case["max_coc_px"],
                    ref_layers=args.ref_layers, ref_border_px=band,
                    ref_sharp_spp=args.ref_sharp_spp, ref_edge_mask_px=args.ref_edge_mask,
@@ -715,6 +757,20 @@ def reference(args) -> None:
     for r in rows:
         cells = [f"{100 * m['share']:.0f} % / {100 * m['pixels']:.0f} % / {m['rms']:.4f}"
                  for m in r["mismatch"].values()]
+        lines.append(f"| {r['index']} | {r['kind']} | " + " | ".join(cells) + " |")
+    gn_regions = list(rows[0]["gauss_newton_split"]) if rows else []
+    lines += ["\nWhich pixels pull the fit from the true camera (`gauss_newton_split`): the "
+              "Gauss-Newton step from the truth, -(J^T J)^-1 J^T r over the fitted pixels, split "
+              "into one term per region (in ln d and ln A the terms add up to the whole step, "
+              "\"all\"; J by "
+              f"central differences of the fit's model, relative step {GN_STEP:g}). Each cell: "
+              "the relative change of d / of A the region's pixels ask for. A first-order "
+              "picture: the fit itself iterates to where the step vanishes.\n",
+              "| index | kind | " + " | ".join(gn_regions) + " |",
+              "|---|---|" + "---|" * len(gn_regions)]
+    for r in rows:
+        cells = [f"{100 * dd:+.2f} % / {100 * da:+.2f} %"
+                 for dd, da in r["gauss_newton_split"].values()]
         lines.append(f"| {r['index']} | {r['kind']} | " + " | ".join(cells) + " |")
     name = "reference_truth_start" if args.start_at_truth else "reference"
     if args.ref_tag:
