@@ -248,7 +248,13 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
             # of levels (which the rules above cannot order) are seen front first
             seen = t_front * a_front + t_behind * a_behind
             room = jnp.clip(1.0 - cover, 0.0, 1.0)
-            scale = jnp.where(seen > room, safe_div(room, seen), 1.0)
+            # min(1, room / seen), with the denominator kept above eps: the reads' negative
+            # lobes leave traces of ~1e-20 coverage, and room / seen there had a tangent of
+            # room dseen / seen^2, which overflowed to inf and NaN in float32 (a Lanczos-read
+            # Jacobian with NaN pixels, lens-reference case 3). Where seen <= eps this moves
+            # less than eps of coverage. A `where`, not `minimum`: at seen == room (an opaque
+            # first surface, 1 == 1) the tangent must be 0, not minimum's half of each side.
+            scale = jnp.where(seen > room, room / jnp.maximum(seen, jnp.finfo(dtype).eps), 1.0)
             return (hidden + prev_cover, a_front + a_behind, a_front,
                     colour + (scale * t_front)[..., None] * g[..., 0:3]
                     + (scale * t_behind)[..., None] * g[..., 3:6],
