@@ -530,13 +530,12 @@ def mismatch_regions(depth, coc) -> dict:
     return regions
 
 
-def mismatch_split(residual, depth, coc, weight) -> dict:
+def mismatch_split(residual, regions, weight) -> dict:
     """Where the model differs from the reference at the true camera: the share of the squared
-    residual (over the `weight` pixels) in each of `mismatch_regions`, with the fraction of
-    pixels and the rms there (image units)."""
+    residual (over the `weight` pixels) in each of `regions` (`mismatch_regions`), with the
+    fraction of pixels and the rms there (image units)."""
     e2 = np.sum(np.square(residual), axis=-1) * weight
     total = float(e2.sum())
-    regions = mismatch_regions(depth, coc)
     out = {}
     for name, m in regions.items():
         w = weight * m
@@ -674,10 +673,10 @@ def reference(args) -> None:
             return float(np.sqrt(np.sum(wr * r * r) / np.sum(wr * target * target)))
 
         coc = np.asarray(dofjax.coc_radius(case["depth"], case["camera"]))
-        row["mismatch"] = mismatch_split(at_truth, np.asarray(case["depth"]), coc, w)
+        regions = mismatch_regions(np.asarray(case["depth"]), coc)
+        row["mismatch"] = mismatch_split(at_truth, regions, w)
         row["gauss_newton_split"] = gauss_newton_split(
-            lambda cam: forward(*inputs, cam, **extras), at_truth, case["camera"],
-            mismatch_regions(np.asarray(case["depth"]), coc), w)
+            lambda cam: forward(*inputs, cam, **extras), at_truth, case["camera"], regions, w)
         row.update(reference_seconds=None if cached else render_s, max_coc_px=case["max_coc_px"],
                    ref_layers=args.ref_layers, ref_border_px=band,
                    ref_sharp_spp=args.ref_sharp_spp, ref_edge_mask_px=args.ref_edge_mask,
