@@ -18,7 +18,9 @@
    resolution: a full-resolution slice costs ~6 ms at 512 x 512 in memory traffic alone.
 3. Slices are composited front to back, one `lax.scan` per run of levels that share a resolution
    and blur method (compiles in seconds; reverse mode stores one carry per slice; a
-   `lax.switch` on the kernel size inside the scan pays each level only its own taps). Slice p is
+   `lax.switch` on the level's kernel inside the scan pays each level only its own taps; the
+   kernels are host constants, so a disc's zero corner taps are skipped and its equal taps
+   share one multiplication). Slice p is
    attenuated by the blurred coverage of every slice nearer than p - 1, and by slice p - 1's
    sources in front of level p - 1 fully and those a fraction t of the way from level p - 1 to
    p by (1 - t): occlusion is continuous in c (a source crossing a level never switches its
@@ -206,24 +208,32 @@ def _upsample(x, s: int):
     return x
 
 
-def _blur(fields, kernel, pad: int):
-    """'Same' convolution of each (C, h, w) field with a (K, K) kernel (traced values, static
-    size) by K^2 shifted sums, from fields already zero-padded by `pad` >= K // 2 on every side
-    ((C, h + 2 pad, w + 2 pad)): for kernels this small one fused pass beats an FFT product.
-    The taps are split off the kernel once for all fields (one op, not a slice and a squeeze
-    per tap and field: fewer ops to trace, transform and compile in every copy of the model)."""
+def _blur(fields, kernel: np.ndarray, pad: int):
+    """'Same' convolution of each (C, h, w) field with a static (K, K) kernel by shifted sums,
+    from fields already zero-padded by `pad` >= K // 2 on every side ((C, h + 2 pad,
+    w + 2 pad)): for kernels this small one fused pass beats an FFT product.
+
+    The kernel is a host array, so its zero taps (the corners of a disc's square: 12 of a 7 x 7
+    kernel's 49) are skipped and taps of equal value (a disc's 8-fold symmetry) share one
+    multiplication: out = sum over distinct values v of v * (sum of the fields shifted by
+    every tap equal to v)."""
+    kernel = np.asarray(kernel)
     r = kernel.shape[0] // 2
     o = pad - r
-    taps = [t.reshape(()) for t in jnp.split(kernel.reshape(-1), kernel.size)]
+    groups: dict[float, list[tuple[int, int]]] = {}
+    for i in range(2 * r + 1):
+        for j in range(2 * r + 1):
+            if kernel[i, j] != 0.0:
+                groups.setdefault(float(kernel[i, j]), []).append((i, j))
     outs = []
     for field in fields:
         h, w = field.shape[-2] - 2 * pad, field.shape[-1] - 2 * pad
         out = 0.0
-        for i in range(2 * r + 1):
-            for j in range(2 * r + 1):
-                # out(y, x) = sum_t field((y, x) - t) K(t), t = (i - r, j - r)
-                a, b = o + 2 * r - i, o + 2 * r - j
-                out = out + taps[i * (2 * r + 1) + j] * field[..., a: a + h, b: b + w]
+        for value, taps in groups.items():
+            # out(y, x) = sum_t field((y, x) - t) K(t), t = (i - r, j - r)
+            part = sum(field[..., a: a + h, b: b + w]
+                       for a, b in ((o + 2 * r - i, o + 2 * r - j) for i, j in taps))
+            out = out + value * part
         outs.append(out)
     return outs
 
@@ -524,20 +534,19 @@ class _Layout(NamedTuple):
         return (jnp.asarray(q3, dtype), jnp.asarray([p == 0 for p in ps]),
                 jnp.asarray([p == n - 1 for p in ps]))
 
-    def kernel_table(self, i_run: int, dtype, reflect: bool = False):
-        """The run's shifted-sum kernels, each centred in the run's largest size (point-reflected
-        with `reflect`: the blur's transpose), and each level's index into the sorted distinct
-        sizes (the `lax.switch` branch that blurs with its own taps only):
-        (k_sizes, (ks, which))."""
-        ps, size = self.runs[i_run], self.sizes[i_run]
-        k_sizes = sorted({self.kernels[p].shape[0] for p in ps})
-        ks = np.zeros((len(ps), size, size))
-        for i, p in enumerate(ps):
-            o = (size - self.kernels[p].shape[0]) // 2
-            ks[i, o: size - o, o: size - o] = self.kernels[p][::-1, ::-1] if reflect \
-                else self.kernels[p]
-        which = [k_sizes.index(self.kernels[p].shape[0]) for p in ps]
-        return k_sizes, (jnp.asarray(ks, dtype), jnp.asarray(which, jnp.int32))
+    def kernel_table(self, i_run: int, reflect: bool = False):
+        """The run's distinct shifted-sum kernels (host arrays; point-reflected with `reflect`:
+        the blur's transpose) and each level's index into them (the `lax.switch` branch that
+        blurs with that kernel's own non-zero taps): (kernels, which (L,) int32)."""
+        distinct, which = [], []
+        for p in self.runs[i_run]:
+            k = self.kernels[p][::-1, ::-1] if reflect else self.kernels[p]
+            i = next((i for i, d in enumerate(distinct)
+                      if d.shape == k.shape and np.array_equal(d, k)), len(distinct))
+            if i == len(distinct):
+                distinct.append(k)
+            which.append(i)
+        return distinct, jnp.asarray(which, jnp.int32)
 
 
 def _layout(window, blades, rotation, ratio, min_radius, height, width) -> _Layout:
@@ -594,19 +603,17 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
         s = factors[ps[0]]
         h, w = hp // s, wp // s
         if size <= SHIFTED_MAX:
-            # kernels padded to the run's largest; each level blurs with its own size's taps only
-            # (a `lax.switch` on the size: every tap costs a pass over the slice)
-            k_sizes, ks = lay.kernel_table(i_run, dtype)
-            # the compositing runs inside each branch, so the blurred fields fuse into it
+            # one branch per distinct kernel: each level blurs with its own non-zero taps only
+            # (a `lax.switch` on the level's kernel: every tap costs a pass over the slice); the
+            # compositing runs inside each branch, so the blurred fields fuse into it
+            distinct, ks = lay.kernel_table(i_run)
             branches = [functools.partial(
-                lambda st, fs, k, o: composite(st, _blur(fs, k[o: size - o, o: size - o], border)),
-                o=(size - k_size) // 2) for k_size in k_sizes]
+                lambda st, fs, k: composite(st, _blur(fs, k, border)), k=k) for k in distinct]
 
-            def blur_composite(st, fs, k):
-                k, which = k
+            def blur_composite(st, fs, which):
                 if len(branches) == 1:
-                    return branches[0](st, fs, k)
-                return jax.lax.switch(which, branches, st, fs, k)
+                    return branches[0](st, fs)
+                return jax.lax.switch(which, branches, st, fs)
         else:
             ks, r, grid = _spectra([kernels[p] for p in ps], h, w, dtype)
             ks = jnp.asarray(ks)
@@ -899,20 +906,19 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         if size <= SHIFTED_MAX:
             # the shifted sums' transpose: the point-reflected kernel over the cotangent
             # zero-padded by its radius plus the run's border (the fields carry that border)
-            k_sizes, ks = lay.kernel_table(i_run, dtype, reflect=True)
+            distinct, ks = lay.kernel_table(i_run, reflect=True)
 
-            def branch(gs, k, k_size):
-                r, ok = k_size // 2, (size - k_size) // 2
+            def branch(gs, k):
+                r = k.shape[0] // 2
                 e = r + border
                 return _blur([jnp.pad(g, ((0, 0),) * (g.ndim - 2) + ((e, e), (e, e)))
-                              for g in gs], k[ok: size - ok, ok: size - ok], r)
+                              for g in gs], k, r)
 
-            branches = [functools.partial(branch, k_size=k_size) for k_size in k_sizes]
+            branches = [functools.partial(branch, k=k) for k in distinct]
 
-            def blur_t(gs, k, has):
-                k, which = k
+            def blur_t(gs, which, has):
                 return jax.lax.switch(jnp.where(has, which, len(branches)),
-                                      branches + [no_sources], gs, k)
+                                      branches + [lambda gs: no_sources(gs, None)], gs)
         else:
             ks, r, grid = _spectra([kernels[p] for p in ps], h, w, dtype)
             ks = jnp.asarray(ks)
