@@ -67,6 +67,7 @@ import numpy as np
 from ._camera import Camera, coc_radius
 from ._kernels import MAGNITUDES, R0, bucket_window, soft_kernel
 from ._numerics import safe_div, safe_sqrt
+from ._rgbd import Layers
 
 # Smallest kernel radius (px, at the reduced resolution) of a level: a level of magnitude m is
 # blurred at 1/s of the resolution, s the largest power of two with m / s >= MIN_LOW_RADIUS.
@@ -354,18 +355,42 @@ def _level_slopes(front_w, back_w, q_lv):
     return front, back
 
 
-def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_depth):
-    """The sources stacked: colours (S, 3, H, W), q = sign(c) c^2 (S, H, W), coverage
-    (S, H, W) and the mirror's q (H, W) or None."""
-    srcs = _sources(rgb, depth, layers, camera, levels, reflection)
+def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_depth,
+                   lay: _Layout):
+    """The sources stacked, in the padded frame of `lay` (zero outside the image): colours
+    (S, 3, Hp, Wp), q = sign(c) c^2 (S, Hp, Wp), coverage (S, Hp, Wp), the mirror's reflected
+    radiance (3, Hp, Wp) and q (Hp, Wp) or None, and the peeled layers' coverage before
+    their gate (`_gate`; S, Hp, Wp) or None.
+
+    The inputs are padded, not the fields: depths by their edge values (every CoC stays
+    finite), the rest by zeros, and q and the coverage are zeroed outside the image by a
+    constant mask. Padded after the fact, the fields' arithmetic fused into the pad, which
+    XLA's CPU backend does not vectorise: the peeled layers' gates (16 clipped ramps per pixel
+    and source) cost ~6 ms at 512 x 512 that way."""
+    pad = lay.pad_hw
+    rgb_p = pad(rgb, rgb.ndim - 3)
+    depth_p = pad(depth, depth.ndim - 2, "edge")
+    refl_p = None if reflection is None else pad(reflection, reflection.ndim - 3)
+    layers_p = None
+    if layers is not None:
+        layers_p = Layers(rgb=pad(layers.rgb, layers.rgb.ndim - 3),
+                          depth=pad(layers.depth, layers.depth.ndim - 2, "edge"),
+                          alpha=pad(layers.alpha, layers.alpha.ndim - 2))
+    inside = jnp.asarray(lay.inside())
+    srcs = _sources(rgb_p, depth_p, layers_p, camera, levels, refl_p)
     colour = jnp.stack([jnp.moveaxis(s[0], -1, 0) for s in srcs])
     c = jnp.stack([s[1] for s in srcs])
-    alpha = jnp.stack([s[2] for s in srcs])
-    q_r = None
+    alpha = jnp.where(inside, jnp.stack([s[2] for s in srcs]), 0.0)
+    q = jnp.where(inside, jnp.sign(c) * c * c, 0.0)
+    q_r = refl = raw = None
     if reflection is not None:
-        c_r = coc_radius(reflection_depth, camera).astype(rgb.dtype)
-        q_r = jnp.sign(c_r) * c_r * c_r
-    return colour, jnp.sign(c) * c * c, alpha, q_r
+        c_r = coc_radius(pad(reflection_depth, reflection_depth.ndim - 2, "edge"),
+                         camera).astype(rgb.dtype)
+        q_r = jnp.where(inside, jnp.sign(c_r) * c_r * c_r, 0.0)
+        refl = jnp.moveaxis(refl_p, -1, 0)
+    if layers is not None:
+        raw = alpha.at[1:].set(jnp.asarray(layers_p.alpha[1:], rgb.dtype))
+    return colour, q, alpha, refl, q_r, raw
 
 
 @functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio",
@@ -382,11 +407,11 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     and closer to the exact full-resolution disc, inf blurs every level at full resolution).
     """
     levels = _levels(float(window))
-    colour, q, alpha, q_r = _source_fields(rgb, depth, layers, camera, levels, reflection,
-                                           reflection_depth)
-    out, _, _ = _composite(colour, q, alpha, reflection, q_r, None, window=float(window),
-                        blades=blades, rotation=float(rotation), ratio=float(ratio),
-                        min_radius=float(min_radius))
+    lay = _layout(float(window), blades, float(rotation), float(ratio), float(min_radius),
+                  depth.shape[-2], depth.shape[-1])
+    colour, q, alpha, refl, q_r, _ = _source_fields(rgb, depth, layers, camera, levels,
+                                                    reflection, reflection_depth, lay)
+    out, _, _ = _composite(colour, q, alpha, refl, q_r, None, lay)
     return out
 
 
@@ -414,23 +439,22 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     """
     levels = _levels(float(window))
     dtype = rgb.dtype
-    colour, q, alpha, q_r = _source_fields(rgb, depth, layers, camera, levels, reflection,
-                                           reflection_depth)
+    lay = _layout(float(window), blades, float(rotation), float(ratio), float(min_radius),
+                  depth.shape[-2], depth.shape[-1])
+    colour, q, alpha, refl, q_r, raw = _source_fields(rgb, depth, layers, camera, levels,
+                                                      reflection, reflection_depth, lay)
     directions = _directions(camera.focus_distance, camera.aperture_radius, camera.pixel_scale,
                              dtype)
     d_alpha = [None, None]
-    raw = None
     if layers is not None:  # a peeled layer's gate depends on its and the visible surface's c
-        raw = alpha.at[1:].set(jnp.asarray(layers.alpha[1:], dtype))
         d_alpha = [jax.jvp(functools.partial(_gate, raw, levels), (q,), (dq(q),))[1]
                    for dq in directions]
-    out, jac, res = _composite(
-        colour, q, alpha, reflection, q_r, list(zip(directions, d_alpha)), window=float(window),
-        blades=blades, rotation=float(rotation), ratio=float(ratio), min_radius=float(min_radius),
-        residuals=residuals)
+    out, jac, res = _composite(colour, q, alpha, refl, q_r, list(zip(directions, d_alpha)),
+                               lay, residuals=residuals)
     if not residuals:
         return out, tuple(jac)
-    return out, tuple(jac), {"composite": res, "q": q, "q_r": q_r, "raw": raw,
+    crop = lay.crop  # the adjoint's sums run over the image
+    return out, tuple(jac), {"composite": res, "q": crop(q), "q_r": crop(q_r), "raw": crop(raw),
                              "camera": (camera.focus_distance, camera.aperture_radius,
                                         camera.pixel_scale)}
 
@@ -504,13 +528,28 @@ class _Layout(NamedTuple):
     hp: int
     wp: int
 
-    def pad(self, x):
-        """Zero-pad the last two axes of an (..., height, width) source to the padded frame."""
+    def pad_hw(self, x, axis: int, mode: str = "constant"):
+        """Pad the (height, width) axes (axis, axis + 1) of x to the padded frame (zeros, or
+        with mode="edge" the edge values)."""
+        b = self.border_px
+        widths = [(0, 0)] * x.ndim
+        widths[axis] = (b, self.hp - self.height + b)
+        widths[axis + 1] = (b, self.wp - self.width + b)
+        return jnp.pad(x, widths, mode=mode)
+
+    def inside(self) -> np.ndarray:
+        """(Hp, Wp) bool: the image's pixels in the padded frame."""
+        b = self.border_px
+        m = np.zeros((self.hp + 2 * b, self.wp + 2 * b), bool)
+        m[b: b + self.height, b: b + self.width] = True
+        return m
+
+    def crop(self, x):
+        """The image's (..., height, width) part of a padded-frame array (None stays None)."""
         if x is None:
             return None
         b = self.border_px
-        return jnp.pad(x, ((0, 0),) * (x.ndim - 2)
-                       + ((b, self.hp - self.height + b), (b, self.wp - self.width + b)))
+        return x[..., b: b + self.height, b: b + self.width]
 
     def run_view(self, i_run: int):
         """The run's offset into the padded frame: a run blurring with a border of b coarse px
@@ -560,9 +599,9 @@ def _layout(window, blades, rotation, ratio, min_radius, height, width) -> _Layo
                    -(-height // s_max) * s_max, -(-width // s_max) * s_max)
 
 
-def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, rotation, ratio,
-               min_radius, residuals: bool = False):
-    """The slices of the sources (`_source_fields`), blurred and composited (module docstring).
+def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: bool = False):
+    """The slices of the sources (`_source_fields`, in the padded frame of the layout `lay`),
+    blurred and composited (module docstring).
 
     `tangents`: None, or one (dq, d alpha or None) per direction, dq a function giving each
     source's (and the mirror's) tangent of q from q: then the directional derivatives of the
@@ -571,25 +610,18 @@ def _composite(colour, q, alpha, reflection, q_r, tangents, *, window, blades, r
     Every quantity is carried as lanes (value, then one tangent per direction): linear steps
     (resampling, blurs) act on each lane alike, products get the product rule.
     """
-    _, _, height, width = colour.shape
+    height, width = lay.height, lay.width
     dtype = colour.dtype
-    lay = _layout(window, blades, rotation, ratio, min_radius, height, width)
     factors, kernels, runs = lay.factors, lay.kernels, lay.runs
     sizes, borders, hp, wp = lay.sizes, lay.borders, lay.hp, lay.wp
     tangents = tangents or []
     n_lanes = 1 + len(tangents)
-    mirror = reflection is not None
-    pad = lay.pad
-
-    colour, q, alpha = pad(colour), pad(q), pad(alpha)
+    # the mirror's reflected radiance (`refl`): blurred at its virtual depth and added on top,
+    # seen through the mirror (the mirror surface, a source above, must not occlude it; like
+    # the pyramid method, nearer surfaces do not occlude it either)
+    mirror = refl is not None
     d_q = [t[0] for t in tangents]
-    d_alpha = [pad(t[1]) for t in tangents]
-    if mirror:
-        # the mirror's reflected radiance: blurred at its virtual depth and added on top, seen
-        # through the mirror (the mirror surface, a source above, must not occlude it; like the
-        # pyramid method, nearer surfaces do not occlude it either)
-        refl = pad(jnp.moveaxis(reflection, -1, 0))
-        q_r = pad(q_r)
+    d_alpha = [t[1] for t in tangents]
     nc = 6 if mirror else 3  # accumulated colour channels: surfaces (+ reflection)
     run_ys = []  # per run: the value lane's (hiding, rgb_b, cov_b) of every slice, or None
     far_res = None
