@@ -699,7 +699,9 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
                 for k in each:
                     dq = d_q[i](q_p[k])
                     d_front, d_back = slopes[k][0] * dq, slopes[k][1] * dq
-                    if d_alpha_p[i] is None:  # one opaque source (dq is 0 where alpha is)
+                    if d_alpha_p[i] is None or k == 0:
+                        # an opaque source: the visible surface covers the image (coverage 1,
+                        # no gate, so d alpha = 0) and dq is 0 outside it, where alpha is
                         d_occ.append(d_front + 2.0 * bw[k] * d_back)
                         d_w.append(d_front + d_back)
                     else:
