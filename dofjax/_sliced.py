@@ -929,7 +929,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         colour_p, q_p, alpha_p, refl_p, q_r_p = (lay.view(x, i_run)
                                                  for x in (colour, q, alpha, refl, q_r))
 
-        def no_sources(gs, k):
+        def no_sources(gs, *_):  # (gs) in the switch, (gs, spectrum) in the FFT cond
             # a slice no source reaches: its fields are zero, and so are their cotangents'
             # contributions (the branch index is a runtime value, so the blurs' transposes stay
             # inside `lax.switch` and come out materialised at the coarse resolution; fused into
@@ -952,7 +952,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
 
             def blur_t(gs, which, has):
                 return jax.lax.switch(jnp.where(has, which, len(branches)),
-                                      branches + [lambda gs: no_sources(gs, None)], gs)
+                                      branches + [no_sources], gs)
         else:
             ks, r, grid = _spectra([kernels[p] for p in ps], h, w, dtype)
             ks = jnp.asarray(ks)
