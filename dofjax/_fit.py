@@ -93,6 +93,10 @@ _SAME_END = 1e-3
 # Local minima of the full-resolution u scan (`scan_points`) kept, and candidates (those and the
 # coarse end points) refined by the full-resolution screen.
 _SCAN_KEEP = 3
+# The scan's losses are first taken one level below full resolution (4x fewer pixels); only the
+# this many lowest local minima there, their neighbours and the modes are evaluated at full
+# resolution (0: every scan point at full resolution).
+_SCAN_REFINE = 4
 # a screened start this close (a fraction of the bounds, in every free parameter) to an earlier
 # one's end point, at no lower loss, stops: it is on its way into that minimum (`_ScreenLM`)
 _NEAR_END = 0.01
@@ -642,16 +646,15 @@ def _lowest_apart(values, ys, param, spec):
     return keep
 
 
-def _losses(ys, skip, data, camera, param, spec, delta0):
-    """Full-resolution loss (sum of squared residuals) at each point, one forward pass each, one
-    after the other; +inf where `skip`."""
+def _losses(ys, skip, data, camera, param, spec, model, delta0):
+    """Loss (sum of squared residuals) of `model` on `data` at each point, one forward pass
+    each, one after the other; +inf where `skip`."""
 
     def one(y_skip):
         y, s = y_skip
 
         def value(_):
-            r = _residual_ul(param.to_ul(y, spec.free), data, camera, spec.search_model,
-                             spec.loss, delta0)
+            r = _residual_ul(param.to_ul(y, spec.free), data, camera, model, spec.loss, delta0)
             return jnp.sum(r * r)
 
         return jax.lax.cond(s, lambda _: jnp.asarray(jnp.inf, data.target.dtype), value, None)
@@ -699,6 +702,26 @@ def _screen(ys, loss, steps, dup, priority, data, camera, param, spec, model, de
     return ys, loss, steps + steps2, ok, dup | drop
 
 
+def _local_minima(values):
+    """`values` where it is a finite local minimum along the scan (lower than the left
+    neighbour, not above the right one: of equal neighbours only the first counts), +inf
+    elsewhere."""
+    inf = jnp.full((1,), jnp.inf, values.dtype)
+    left = jnp.concatenate([inf, values[:-1]])
+    right = jnp.concatenate([values[1:], inf])
+    return jnp.where((values < left) & (values <= right) & jnp.isfinite(values), values, jnp.inf)
+
+
+def _scan_around(values, modes, keep):
+    """Mask of the scan points to evaluate at full resolution, from the scan's losses one level
+    below it: the `keep` lowest local minima there with their two neighbours, and the modes."""
+    n = values.shape[0]
+    neg, idx = jax.lax.top_k(-_local_minima(values), min(keep, n))
+    idx = jnp.where(jnp.isfinite(neg), idx, n)  # fewer minima than `keep`: n is dropped below
+    idx = jnp.concatenate([jnp.where(idx > 0, idx - 1, n), idx, idx + 1, modes])
+    return jnp.zeros(n, bool).at[idx].set(True, mode="drop")
+
+
 def _scan(y_scan, modes, values):
     """The scene's most common inverse depths and the best local minima of the full-resolution
     loss along a grid of u: (ys, loss), the `modes` first.
@@ -719,10 +742,7 @@ def _scan(y_scan, modes, values):
     noise-free suite, 5 cases ended in another basin and were reported "ok" (see
     benchmarks/README.md)."""
 
-    inf = jnp.full((1,), jnp.inf, values.dtype)
-    left = jnp.concatenate([inf, values[:-1]])
-    right = jnp.concatenate([values[1:], inf])
-    key = jnp.where((values < left) & (values <= right) & jnp.isfinite(values), values, jnp.inf)
+    key = _local_minima(values)
     _, idx = jax.lax.top_k(-key, min(_SCAN_KEEP, values.shape[0]))
     return y_scan[jnp.concatenate([modes, idx])], jnp.concatenate([values[modes], key[idx]])
 
@@ -801,9 +821,14 @@ def _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_sc
                 # the end points' and the scan's full-resolution losses in one pass (one copy
                 # of the model in the program)
                 dup_ends = _dedupe(ys, dup)
+                look = jnp.ones(y_scan.shape[0], bool)
+                if _SCAN_REFINE:
+                    d_h, cam_h, model_h = stages[-2]  # the level below full resolution
+                    half = _losses(y_scan, ~look, d_h, cam_h, param, spec, model_h, delta0)
+                    look = _scan_around(half, modes, _SCAN_REFINE)
                 values = _losses(jnp.concatenate([ys, y_scan]),
-                                 jnp.concatenate([dup_ends, jnp.zeros(y_scan.shape[0], bool)]),
-                                 d_g, cam_g, param, spec, delta0)
+                                 jnp.concatenate([dup_ends, ~look]),
+                                 d_g, cam_g, param, spec, spec.search_model, delta0)
                 y_extra, extra_loss = _scan(y_scan, modes, values[ys.shape[0]:])
                 k = y_extra.shape[0]
                 full = jnp.concatenate([values[:ys.shape[0]], extra_loss])
