@@ -717,7 +717,8 @@ def _scan_around(values, modes, keep):
     below it: the `keep` lowest local minima there with their two neighbours, and the modes."""
     n = values.shape[0]
     neg, idx = jax.lax.top_k(-_local_minima(values), min(keep, n))
-    idx = jnp.where(jnp.isfinite(neg), idx, n)  # fewer minima than `keep`: n is dropped below
+    # fewer minima than `keep`: n + 1, whose neighbours are out of range too (dropped below)
+    idx = jnp.where(jnp.isfinite(neg), idx, n + 1)
     idx = jnp.concatenate([jnp.where(idx > 0, idx - 1, n), idx, idx + 1, modes])
     return jnp.zeros(n, bool).at[idx].set(True, mode="drop")
 
@@ -1572,7 +1573,12 @@ def fit_focus(
             with the multi-start at full resolution, the scan's minima as extra starts changed
             nothing (96 % either way). 0: no scan. The scan also visits the inverse depths
             of the scene's (up to 4) most common surfaces, where a focus plane on a surface
-            puts a basin narrower than any affordable grid's spacing.
+            puts a basin narrower than any affordable grid's spacing. The scan runs one
+            pyramid level below full resolution first (a quarter of the pixels); only its 4
+            lowest local minima there, their neighbours on the grid and the modes are then
+            evaluated at full resolution, where the minima are picked as above (at 256x256:
+            at most 16 of the 48 + 4 full-resolution forward passes; the noise-free suite
+            unchanged at 101 of 101).
         coarse_size: the multi-start runs on the image box-downsampled by 2^L, the largest factor
             keeping min(H, W) / 2^L >= coarse_size (None: always full resolution); the best
             start and the best one on the other side of the scene depth are then polished at

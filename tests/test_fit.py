@@ -464,6 +464,25 @@ def test_scan_visits_the_inverse_depth_of_the_dominant_surface(monkeypatch):
     assert float(found.loss) < 0.5 * float(missed.loss)
 
 
+def test_scan_around_marks_the_lowest_half_resolution_minima_and_their_neighbours():
+    """The full-resolution scan evaluates only the lowest local minima of the scan one level
+    down, their grid neighbours and the modes (`_fit._scan_around`); ends of the grid and too
+    few minima mark nothing out of range."""
+    from dofjax._fit import _scan_around
+
+    inf = np.inf
+    #                 0    1    2    3    4    5    6    7    8    9
+    values = jnp.array([1.0, 2.0, 3.0, 0.5, 4.0, 4.0, 0.2, 5.0, 6.0, 0.9])
+    look = np.asarray(_scan_around(values, jnp.array([8]), 2))
+    # the two lowest minima are 6 (0.2) and 3 (0.5); 0 and 9 are minima too but not kept
+    assert np.flatnonzero(look).tolist() == [2, 3, 4, 5, 6, 7, 8]
+    look = np.asarray(_scan_around(values, jnp.zeros(0, jnp.int32), 4))
+    assert np.flatnonzero(look).tolist() == [0, 1, 2, 3, 4, 5, 6, 7, 8, 9]
+    flat = jnp.array([3.0, 2.0, 1.0, inf, inf])  # one minimum (2), none at the infinite tail
+    look = np.asarray(_scan_around(flat, jnp.zeros(0, jnp.int32), 3))
+    assert np.flatnonzero(look).tolist() == [1, 2, 3]
+
+
 def test_depth_modes_are_the_most_common_inverse_depths():
     from dofjax._fit import _depth_modes
 
