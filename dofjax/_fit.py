@@ -93,9 +93,9 @@ _SAME_END = 1e-3
 # Local minima of the full-resolution u scan (`scan_points`) kept, and candidates (those and the
 # coarse end points) refined by the full-resolution screen.
 _SCAN_KEEP = 3
-# The scan's losses are first taken one level below full resolution (4x fewer pixels); only the
-# this many lowest local minima there, their neighbours and the modes are evaluated at full
-# resolution (0: every scan point at full resolution).
+# The scan's losses are first taken one level below full resolution (4x fewer pixels); only
+# this many of the lowest local minima there, their neighbours and the modes are evaluated at
+# full resolution (`_scan_around`; 0: every scan point at full resolution).
 _SCAN_REFINE = 4
 # a screened start this close (a fraction of the bounds, in every free parameter) to an earlier
 # one's end point, at no lower loss, stops: it is on its way into that minimum (`_ScreenLM`)
@@ -728,15 +728,15 @@ def _scan(y_scan, modes, values):
     loss along a grid of u: (ys, loss), the `modes` first.
 
     `y_scan` holds points evenly spaced in u across its bounds and the scene's most common
-    inverse depths (`_depth_modes`), sorted by u, each with its best aperture at the
-    multi-start level. Their full-resolution losses `values` (forward passes only) are
-    compared along the grid, and the `_SCAN_KEEP` lowest local minima are returned with their
-    losses (+inf for slots without one); of equal neighbours (a repeated mode) only the first
-    counts. The points at the indices `modes` (the scene's most common inverse depths,
-    `_depth_modes`) come first, whatever their loss: the fit screens those within
-    `_MODE_RATIO` of the best other candidate's loss even when they do not rank among the
-    lowest (a basin there can be narrow in the aperture too, so the grid aperture's loss
-    understates it).
+    inverse depths (`_depth_modes`), sorted by u, each with its best aperture at the multi-start
+    level. Their full-resolution losses `values` (forward passes only; +inf at the points
+    `_scan_around` left out) are compared along the grid, and the `_SCAN_KEEP` lowest local
+    minima are returned with their losses (+inf for slots without one); of equal neighbours (a
+    repeated mode) only the first counts. The points at the indices `modes` (the scene's most
+    common inverse depths, `_depth_modes`) come first, whatever their loss: the fit screens
+    those within `_MODE_RATIO` of the best other candidate's loss even when they do not rank
+    among the lowest (a basin there can be narrow in the aperture too, so the grid aperture's
+    loss understates it).
 
     At 256x256 the true basin in u is often narrower than the spacing of the 8 starts, and the
     downsampled levels' minima lie elsewhere when the blur is a pixel or two: in the 100-case
