@@ -228,6 +228,7 @@ class _Spec:
     screen_steps: int  # max steps per screening solve of every start on each finer level (0: none)
     scan_points: int  # full-resolution scan of u, forward passes only (0: none)
     robust_rounds: int
+    scan_refine: int = _SCAN_REFINE  # see _SCAN_REFINE (0 in a batch)
 
 
 class _Extras(eqx.Module):
@@ -823,10 +824,10 @@ def _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_sc
                 # of the model in the program)
                 dup_ends = _dedupe(ys, dup)
                 look = jnp.ones(y_scan.shape[0], bool)
-                if _SCAN_REFINE:
+                if spec.scan_refine:
                     d_h, cam_h, model_h = stages[-2]  # the level below full resolution
                     half = _losses(y_scan, ~look, d_h, cam_h, param, spec, model_h, delta0)
-                    look = _scan_around(half, modes, _SCAN_REFINE)
+                    look = _scan_around(half, modes, spec.scan_refine)
                 values = _losses(jnp.concatenate([ys, y_scan]),
                                  jnp.concatenate([dup_ends, ~look]),
                                  d_g, cam_g, param, spec, spec.search_model, delta0)
@@ -1352,7 +1353,10 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         auto_scale=(loss != "l2" and loss_scale is None), free=free, rtol=float(rtol),
         atol=float(atol), max_steps=int(max_steps), factors=factors, robust_rounds=robust_rounds,
         start_steps=int(start_steps), screen_steps=int(screen_steps),
-        scan_points=int(scan_points))
+        scan_points=int(scan_points),
+        # vmapped, a skipped loss is computed anyway (the cond becomes a select), so a batch
+        # scans every point at full resolution and skips the half-resolution pass
+        scan_refine=0 if batch else _SCAN_REFINE)
     data = _Data(target=jnp.asarray(tgt, dtype), rgb=jnp.asarray(rgb_a, dtype),
                  depth=jnp.asarray(depth_a, dtype), weight=jnp.asarray(weight, dtype),
                  extras=extras)
@@ -1680,6 +1684,11 @@ def fit_focus_batch(
     multiple of the device count); each device fits its share with `jax.vmap`. Across several
     hosts, call `jax.distributed.initialize()` first on every host: `jax.devices()` then lists
     all hosts' devices and the same call shards over all of them.
+
+    One difference from `fit_focus`: the full-resolution scan of the focus (`scan_points`)
+    evaluates every point at full resolution, without `fit_focus`'s half-resolution pass that
+    picks which to evaluate (vmapped, a skipped evaluation costs as much as a done one). Where
+    a scene has several basins, the candidates screened, and so the end point, can differ.
 
     Args:
         targets: (B, H, W, 3) blurred images; rgb, depth, camera: shared, as `fit_focus`.
