@@ -93,9 +93,10 @@ _SAME_END = 1e-3
 # Local minima of the full-resolution u scan (`scan_points`) kept, and candidates (those and the
 # coarse end points) refined by the full-resolution screen.
 _SCAN_KEEP = 3
-# The scan's losses are first taken one level below full resolution (4x fewer pixels); only
-# this many of the lowest local minima there, their neighbours and the modes are evaluated at
-# full resolution (`_scan_around`; 0: every scan point at full resolution).
+# The scan's losses are first taken one level below full resolution (4x fewer pixels) when that
+# level is finer than the multi-start's; only this many of the lowest local minima there, their
+# neighbours and the modes are evaluated at full resolution (`_scan_around`; 0: every scan
+# point at full resolution).
 _SCAN_REFINE = 4
 # a screened start this close (a fraction of the bounds, in every free parameter) to an earlier
 # one's end point, at no lower loss, stops: it is on its way into that minimum (`_ScreenLM`)
@@ -1355,8 +1356,10 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         start_steps=int(start_steps), screen_steps=int(screen_steps),
         scan_points=int(scan_points),
         # vmapped, a skipped loss is computed anyway (the cond becomes a select), so a batch
-        # scans every point at full resolution and skips the half-resolution pass
-        scan_refine=0 if batch else _SCAN_REFINE)
+        # scans every point at full resolution and skips the half-resolution pass; so does a
+        # fit whose level below full resolution is the multi-start's (128x128 images): there,
+        # it lost 3 of 101 noise-free cases to other basins (reported ok)
+        scan_refine=0 if batch or len(factors) < 2 else _SCAN_REFINE)
     data = _Data(target=jnp.asarray(tgt, dtype), rgb=jnp.asarray(rgb_a, dtype),
                  depth=jnp.asarray(depth_a, dtype), weight=jnp.asarray(weight, dtype),
                  extras=extras)
@@ -1577,12 +1580,15 @@ def fit_focus(
             with the multi-start at full resolution, the scan's minima as extra starts changed
             nothing (96 % either way). 0: no scan. The scan also visits the inverse depths
             of the scene's (up to 4) most common surfaces, where a focus plane on a surface
-            puts a basin narrower than any affordable grid's spacing. The scan runs one
-            pyramid level below full resolution first (a quarter of the pixels); only its 4
-            lowest local minima there, their neighbours on the grid and the modes are then
-            evaluated at full resolution, where the minima are picked as above (at 256x256:
-            at most 16 of the 48 + 4 full-resolution forward passes; the noise-free suite
-            unchanged at 101 of 101).
+            puts a basin narrower than any affordable grid's spacing. When the pyramid has a
+            level between the multi-start's and full resolution (256x256 and larger with the
+            default coarse_size), the scan runs one level below full resolution first (a
+            quarter of the pixels); only its 4 lowest local minima there, their neighbours on
+            the grid and the modes are then evaluated at full resolution, where the minima are
+            picked as above (at 256x256: at most 16 of the 48 + 4 full-resolution forward
+            passes; the noise-free suite unchanged at 101 of 101). At 128x128 that level is
+            the multi-start's, whose minima are biased, and the whole scan runs at full
+            resolution (the half-resolution pass lost 3 of 101 noise-free cases there).
         coarse_size: the multi-start runs on the image box-downsampled by 2^L, the largest factor
             keeping min(H, W) / 2^L >= coarse_size (None: always full resolution); the best
             start and the best one on the other side of the scene depth are then polished at
