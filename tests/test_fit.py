@@ -483,6 +483,34 @@ def test_scan_around_marks_the_lowest_half_resolution_minima_and_their_neighbour
     assert np.flatnonzero(look).tolist() == [1, 2, 3]
 
 
+def test_half_resolution_scan_only_between_the_multi_start_level_and_full_resolution(
+        monkeypatch):
+    """The scan's half-resolution pass runs when the level below full resolution is finer than
+    the multi-start's (at 128x128 it is the multi-start's, and lost noise-free cases there),
+    and never in a batch (vmapped, its skipped points would be computed anyway)."""
+    from dofjax import _fit
+
+    class Captured(Exception):
+        pass
+
+    def capture(*args):  # stop at the compiled fit, with its static spec
+        raise Captured(next(a for a in args if isinstance(a, _fit._Spec)))
+
+    monkeypatch.setattr(_fit, "_fit_jit", capture)
+    monkeypatch.setattr(_fit, "_batch_jit", capture)
+    rgb, depth = scene()  # 32 x 32
+    kw = dict(KW, coarse_size=8)
+    for call, crop, want_factors, want in ((fit_focus, 32, (4, 2), _fit._SCAN_REFINE),
+                                           (fit_focus, 16, (2,), 0),
+                                           (fit_focus_batch, 32, (4, 2), 0)):
+        c = Camera(width=crop, height=crop, fov=60.0, focus_distance=2.5, aperture_radius=0.05)
+        target = rgb[:crop, :crop][None] if call is fit_focus_batch else rgb[:crop, :crop]
+        with pytest.raises(Captured) as got:
+            call(target, rgb[:crop, :crop], depth[:crop, :crop], c, **kw)
+        spec = got.value.args[0]
+        assert spec.factors == want_factors and spec.scan_refine == want
+
+
 def test_depth_modes_are_the_most_common_inverse_depths():
     from dofjax._fit import _depth_modes
 
