@@ -229,7 +229,7 @@ class _Spec:
     screen_steps: int  # max steps per screening solve of every start on each finer level (0: none)
     scan_points: int  # full-resolution scan of u, forward passes only (0: none)
     robust_rounds: int
-    scan_refine: int = _SCAN_REFINE  # see _SCAN_REFINE (0 in a batch)
+    scan_refine: int  # _SCAN_REFINE, or 0: every scan point at full resolution (_prepare)
 
 
 class _Extras(eqx.Module):
@@ -824,10 +824,11 @@ def _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_sc
                 # the end points' and the scan's full-resolution losses in one pass (one copy
                 # of the model in the program)
                 dup_ends = _dedupe(ys, dup)
-                look = jnp.ones(y_scan.shape[0], bool)
+                look = jnp.ones(y_scan.shape[0], bool)  # scan points to take to full res.
                 if spec.scan_refine:
                     d_h, cam_h, model_h = stages[-2]  # the level below full resolution
-                    half = _losses(y_scan, ~look, d_h, cam_h, param, spec, model_h, delta0)
+                    half = _losses(y_scan, jnp.zeros_like(look), d_h, cam_h, param, spec,
+                                   model_h, delta0)
                     look = _scan_around(half, modes, spec.scan_refine)
                 values = _losses(jnp.concatenate([ys, y_scan]),
                                  jnp.concatenate([dup_ends, ~look]),
