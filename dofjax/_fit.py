@@ -108,6 +108,10 @@ _SCREEN_STEP = 1e-4
 # first damping of the full-resolution screen, x max diag(J^T J) (`_TrustRegion`; the other
 # solves take 1, a first step about half Gauss-Newton's)
 _SCREEN_DAMPING = 0.1
+# the full-resolution screen and the polish as one loop around one solve where they fit the
+# same data with LM (`_screen_polish`: one compiled copy of the model's Jacobian instead of two;
+# False: two loops, the same results)
+_SHARED_POLISH = True
 # Inverse depths of the scene's most common surfaces that join the u scan (`_depth_modes`), and
 # the histogram (bins across the u bounds, smallest share of the pixels) that finds them.
 _SCAN_MODES = 4
@@ -304,6 +308,11 @@ class _ScreenLM(optx.LevenbergMarquardt):
     losses `options["end_loss"]` (+inf: no end in that slot). On the quads scene of
     benchmarks/fit_speed.py the three full-resolution candidates all converged to the truth,
     7 + 8 + 8 Jacobians at 256x256 for one minimum.
+
+    `options["screen"]` (a traced bool) turns both tests off: the solver is then plain
+    Levenberg-Marquardt, so one compiled copy can serve the screens and the polish
+    (`_screen_polish`). `options["cap"]` stops it after that many steps, as a `max_steps` would
+    (with the same result code), for the screens in a loop whose `max_steps` is the polish's.
     """
 
     @staticmethod
@@ -318,7 +327,7 @@ class _ScreenLM(optx.LevenbergMarquardt):
         # here, or its next step lands (Gauss-Newton's guess of its minimum) on a known end
         near = close(y, _NEAR_END) | close(state.y_eval, 0.2 * _NEAR_END)
         loss = jnp.sum(jnp.square(state.f_info.residual))
-        return jnp.any(near & (loss >= end_loss)) & ~state.first_step
+        return jnp.any(near & (loss >= end_loss)) & ~state.first_step & options["screen"]
 
     def terminate(self, fn, y, args, options, state, tags):
         done, result = super().terminate(fn, y, args, options, state, tags)
@@ -326,7 +335,10 @@ class _ScreenLM(optx.LevenbergMarquardt):
         # minimum is found as well as a screen needs (the polish goes on from there)
         small = (state.num_steps_since_acceptance == 0) & (
             jnp.max(jnp.abs(state.y_eval - y)) < _SCREEN_STEP) & ~state.first_step
-        return done | small | self.known(y, options, state), result
+        done = done | ((small | self.known(y, options, state)) & options["screen"])
+        capped = ~done & (state.num_steps >= options["cap"])
+        result = optx.RESULTS.where(capped, optx.RESULTS.nonlinear_max_steps_reached, result)
+        return done | capped, result
 
 
 def _make_solver(spec: _Spec, rtol: float, atol: float, floor=0.0, screen: bool = False,
@@ -425,7 +437,8 @@ def _residual_ul(ul, data: _Data, camera: Camera, model: Callable, loss: str, de
     return (r / jnp.sqrt(n)).reshape(-1)
 
 
-def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, ends=None, damping=1.0):
+def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, ends=None, damping=1.0,
+           screen=True, cap=None):
     """One optimistix least-squares solve from y0 (unconstrained coordinates of the free params).
 
     Returns (y, mean loss 2 sum(rho) / n, steps, success, (J, r)) with J (n, len(free)) the
@@ -435,7 +448,9 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, ends=None, d
 
     `ends` = (end points, their losses) makes it a screen (`_ScreenLM`, LM only): it also stops
     near a known end, and returns a sixth item, whether it did. `damping`: LM's first damping
-    (`_TrustRegion`).
+    (`_TrustRegion`). With `ends`, `screen` (traced or not) False makes the solver plain LM and
+    `cap` (default `spec.max_steps`) caps the steps (`_ScreenLM`). rtol, atol and damping may be
+    traced.
     """
     free = jnp.asarray(spec.free)
 
@@ -455,8 +470,11 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, ends=None, d
     # float rounding of the model's pixels (a few eps of the image's rms), as a mean square
     eps = jnp.finfo(data.target.dtype).eps
     floor = jnp.square(8.0 * eps) * jnp.mean(jnp.square(data.target))
-    screen = ends is not None and spec.solver == "lm"
-    options = dict(ends=ends[0], end_loss=ends[1]) if screen else None
+    screen, flag = ends is not None and spec.solver == "lm", screen
+    options = None
+    if screen:
+        options = dict(ends=ends[0], end_loss=ends[1], screen=jnp.asarray(flag),
+                       cap=jnp.asarray(spec.max_steps if cap is None else cap))
     sol = optx.least_squares(fn, _make_solver(spec, rtol, atol, floor, screen, damping), y0,
                              args=(delta, data, camera, param), options=options, has_aux=True,
                              max_steps=spec.max_steps, throw=False)
@@ -614,6 +632,89 @@ def _polish(state, has_alt, data, camera, param, spec, model, delta0, rtol, atol
     pair, pair_loss, pair_steps, pair_ok, jacs = jax.tree_util.tree_map(
         lambda x: jnp.where(has_alt, x, x[:1]), (pair, pair_loss, pair_steps, pair_ok, jacs))
     return pair, pair_loss, pair_steps, pair_ok, delta, jacs
+
+
+def _screen_polish(ys, loss, steps, dup, priority, u_scene, data, camera, param, spec, model,
+                   delta0, r1, a1, damping, rounds: int):
+    """`_screen` on the full-resolution level, `_pick` and `_polish`, as one loop over tasks
+    around one solve (LM only, and the polish on the screen's level: not supersampled).
+
+    Tasks 0..k-1 screen the points `ys` (k of them, in the order of `priority`), task k picks
+    the pair from their end points and polishes the best, k + 1 the alternative, and so on for
+    each robust round. Written as two loops (`_screen`, `_polish`), the full-resolution model
+    and its Jacobian are compiled twice: as one, a 256x256 fit compiled in ~2 s less (first
+    call ~21.6 -> ~19.5 s, `benchmarks/fit_speed.py`). Returns `_polish`'s outputs and has_alt.
+    """
+    k = ys.shape[0]
+    dup = _dedupe(ys, dup)
+    order = jnp.argsort(jnp.where(dup, jnp.inf, priority))
+    inf = jnp.asarray(jnp.inf, loss.dtype)
+    no = jnp.asarray(False)
+    n = 3 * data.target.shape[0] * data.target.shape[1]
+    jacs = (jnp.zeros((3, n, len(spec.free)), data.target.dtype),  # the pair's and a spare
+            jnp.zeros((3, n), data.target.dtype))
+    # screened: ys, loss (+inf: dropped), steps, ok, dropped; pair: ys, loss, steps, ok, has_alt
+    screened = (ys, jnp.full(k, inf), jnp.zeros_like(steps), jnp.zeros(k, bool),
+                jnp.zeros(k, bool))
+    pair = (jnp.zeros((2,) + ys.shape[1:], ys.dtype), jnp.zeros(2, loss.dtype),
+            jnp.zeros(2, steps.dtype), jnp.zeros(2, bool), no)
+
+    def pick(sy, sloss, ssteps, sok):
+        ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(sy)
+        best, alt, has_alt = _pick(ul_end[:, 0], sloss, u_scene)
+        idx = jnp.stack([best, alt])
+        return sy[idx], sloss[idx], steps[idx] + ssteps[idx], sok[idx], has_alt
+
+    def task(carry, t):
+        screened, pair, jacs, delta = carry
+        sy, sloss, ssteps, sok, sdrop = screened
+        is_screen = t < k
+        pair = jax.tree.map(lambda a, b: jnp.where(t == k, a, b), pick(*screened[:4]), pair)
+        py, ploss, psteps, pok, has_alt = pair
+        i = order[jnp.minimum(t, k - 1)]  # the point to screen
+        j = jnp.maximum(t - k, 0) % 2  # the member of the pair to polish
+        if spec.auto_scale:  # rounds >= 1 re-estimate the robust scale (`_polish`)
+            delta = jax.lax.cond(
+                (t >= k + 2) & (j == 0),
+                lambda _: _mad_scale(data, camera, param.to_ul(py[0], spec.free), model,
+                                     spec.loss),
+                lambda _: delta, None)
+        y0 = jnp.where(is_screen, sy[i], py[j])
+
+        def solve(_):
+            y, lo, st, ok, jac, known = _solve(
+                y0, data, camera, param, spec, model, jnp.where(is_screen, delta0, delta),
+                jnp.where(is_screen, r1, spec.rtol), jnp.where(is_screen, a1, spec.atol),
+                ends=(sy, sloss), damping=jnp.where(is_screen, damping, 1.0),
+                screen=is_screen, cap=jnp.where(is_screen, spec.screen_steps, spec.max_steps))
+            return y, lo, st, ok, jac, known
+
+        def skip(_):
+            return (y0, jnp.where(is_screen, inf, ploss[j]), jnp.zeros((), steps.dtype),
+                    ~is_screen & pok[j], tuple(jnp.zeros(x.shape[1:], x.dtype) for x in jacs),
+                    jnp.asarray(True))
+
+        skipped = jnp.where(is_screen, dup[i], (j == 1) & ~has_alt)
+        y, lo, st, ok, jac, known = jax.lax.cond(skipped, skip, solve, None)
+        # a screen that stopped on its way into a known minimum: no new end, out of the pick
+        new_screened = (sy.at[i].set(y), sloss.at[i].set(jnp.where(known, inf, lo)),
+                        ssteps.at[i].set(st), sok.at[i].set(ok & ~known), sdrop.at[i].set(known))
+        new_pair = (py.at[j].set(y), ploss.at[j].set(lo), psteps.at[j].add(st),
+                    pok.at[j].set(ok), has_alt)
+        screened = jax.tree.map(lambda a, b: jnp.where(is_screen, a, b), new_screened, screened)
+        pair = jax.tree.map(lambda a, b: jnp.where(is_screen, b, a), new_pair, pair)
+        # a polish's J into its slot, anything else into the spare one (no copy of jacs)
+        slot = jnp.where(is_screen | skipped, 2, j)
+        jacs = tuple(x.at[slot].set(v) for x, v in zip(jacs, jac))
+        return (screened, pair, jacs, delta), None
+
+    carry = (screened, pair, jacs, jnp.asarray(delta0, ys.dtype))
+    (_, pair, jacs, delta), _ = jax.lax.scan(task, carry, jnp.arange(k + 2 * rounds))
+    *pair, has_alt = pair
+    jacs = tuple(x[:2] for x in jacs)
+    # without an alternative, the second of the pair is the first (`_polish`)
+    pair, jacs = jax.tree.map(lambda x: jnp.where(has_alt, x, x[:1]), (tuple(pair), jacs))
+    return (*pair, delta, jacs), has_alt
 
 
 def _pick(u_end, losses, u_scene):
@@ -805,7 +906,13 @@ def _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_sc
     # Every start is solved (vmapped, loose tolerance): picking the best grid points and solving
     # only those lost 2 of 12 noise-free cases at 64x64 to wrong basins (0 of 12 this way).
     ys, loss, steps, ok = _solve_many(y_starts, src, cam1, param, spec1, model1, delta0, r1, a1)
-    if spec.factors and spec.screen_steps > 0:
+    rounds = 1 + (spec.robust_rounds if spec.auto_scale else 0)
+    screens = bool(spec.factors) and spec.screen_steps > 0
+    # the full-resolution screen and the polish share one solve (one compiled copy of the
+    # model's Jacobian) where they fit the same data with the same solver
+    merged = (_SHARED_POLISH and screens and spec.solver == "lm" and _factor(data) == 1
+              and spec.model == spec.search_model)
+    if screens:
         # Coarse to fine: every start is refined on each finer level of the pyramid, then at
         # full resolution, and the pair to polish is picked there. The multi-start level's
         # loss is biased where the blur is about a pixel (4x4 pooling leaves almost no trace
@@ -851,17 +958,22 @@ def _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_sc
             # the lowest loss on this level first (the full-resolution scan's, or the coarser
             # level's)
             priority = full if y_scan is not None and last else loss
+            damping = _SCREEN_DAMPING if last else 1.0
+            if last and merged:
+                polished, has_alt = _screen_polish(
+                    ys, loss, steps, dup, priority, u_scene, data, fine, param, spec,
+                    spec.model, delta0, r1, a1, damping, rounds)
+                break
             ys, loss, steps, ok, dup = _screen(ys, loss, steps, dup, priority, d_g, cam_g,
-                                               param, spec, model_g, delta0, r1, a1,
-                                               _SCREEN_DAMPING if last else 1.0)
-    ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(ys)
-    best, alt, has_alt = _pick(ul_end[:, 0], loss, u_scene)
-    idx = jnp.stack([best, alt])
-    pair, pair_loss, pair_steps, pair_ok = ys[idx], loss[idx], steps[idx], ok[idx]
-    rounds = 1 + (spec.robust_rounds if spec.auto_scale else 0)
-    pair, pair_loss, pair_steps, pair_ok, delta, jacs = _polish(
-        (pair, pair_loss, pair_steps, pair_ok), has_alt, data, fine, param, spec,
-        spec.model, delta0, rtol, atol, rounds)
+                                               param, spec, model_g, delta0, r1, a1, damping)
+    if not merged:
+        ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(ys)
+        best, alt, has_alt = _pick(ul_end[:, 0], loss, u_scene)
+        idx = jnp.stack([best, alt])
+        pair, pair_loss, pair_steps, pair_ok = ys[idx], loss[idx], steps[idx], ok[idx]
+        polished = _polish((pair, pair_loss, pair_steps, pair_ok), has_alt, data, fine, param,
+                           spec, spec.model, delta0, rtol, atol, rounds)
+    pair, pair_loss, pair_steps, pair_ok, delta, jacs = polished
     # The polish can swap the order of the two minima.
     order = jnp.where(pair_loss[1] < pair_loss[0], jnp.array([1, 0]), jnp.array([0, 1]))
     pair, pair_loss = pair[order], pair_loss[order]

@@ -511,6 +511,33 @@ def test_half_resolution_scan_only_between_the_multi_start_level_and_full_resolu
         assert spec.factors == want_factors and spec.scan_refine == want
 
 
+@pytest.mark.parametrize("loss", ["l2", "huber"])
+def test_screen_and_polish_in_one_loop_give_the_two_loops_results(monkeypatch, loss):
+    """`_screen_polish` (the full-resolution screen and the polish around one solve, to compile
+    the model's Jacobian once) returns what `_screen`, `_pick` and `_polish` return, robust
+    rounds included."""
+    from dofjax import _fit
+
+    rgb, depth = scene()
+    target = blur_model(rgb, depth, CAM.replace(**TRUE))
+    target = target + 0.02 * jax.random.normal(jax.random.key(3), target.shape)
+    kw = dict(KW, coarse_size=8, loss=loss)
+    calls, shared = [], _fit._screen_polish
+    monkeypatch.setattr(_fit, "_screen_polish", lambda *a: calls.append(1) or shared(*a))
+    one = fit_focus(target, rgb, depth, CAM, **kw)
+    assert calls
+    monkeypatch.setattr(_fit, "_SHARED_POLISH", False)
+    jax.clear_caches()  # the switch is read at trace time: the compiled fit is cached
+    two = fit_focus(target, rgb, depth, CAM, **kw)
+    assert len(calls) == 1
+    for name in ("focus_distance", "aperture_radius", "focus_distance_se", "aperture_radius_se",
+                 "loss", "steps"):
+        np.testing.assert_allclose(getattr(one, name), getattr(two, name), rtol=1e-6,
+                                   err_msg=name)
+    assert (one.converged, one.identifiable, one.message) == (
+        two.converged, two.identifiable, two.message)
+
+
 def test_depth_modes_are_the_most_common_inverse_depths():
     from dofjax._fit import _depth_modes
 
@@ -602,13 +629,16 @@ def test_screen_stops_on_the_way_into_a_known_minimum():
         d = y - y_min
         return jnp.stack([jnp.sinh(3.0 * d[0]), d[1] + d[0] ** 2])
 
-    def solve(ends, end_loss):
-        solver = eqx.tree_at(lambda s: s.search, _fit._ScreenLM(rtol=1e-4, atol=1e-8),
+    def solve(ends, end_loss, screen=True, cap=50, solver_cls=_fit._ScreenLM, full=False):
+        solver = eqx.tree_at(lambda s: s.search, solver_cls(rtol=1e-4, atol=1e-8),
                              _fit._TrustRegion())
+        options = dict(ends=ends, end_loss=end_loss, screen=jnp.asarray(screen),
+                       cap=jnp.asarray(cap))
         sol = optx.least_squares(fn, solver, jnp.array([1.2, 0.9]), max_steps=50, throw=False,
-                                 options=dict(ends=ends, end_loss=end_loss))
-        return sol.value, int(sol.stats["num_steps"]), bool(
-            _fit._ScreenLM.known(sol.value, dict(ends=ends, end_loss=end_loss), sol.state))
+                                 options=options if solver_cls is _fit._ScreenLM else None)
+        out = (sol.value, int(sol.stats["num_steps"]),
+               bool(_fit._ScreenLM.known(sol.value, options, sol.state)))
+        return out + (sol.result,) if full else out
 
     y_free, n_free, known_free = solve(jnp.array([[-1.0, 1.0]]), jnp.array([0.0]))
     assert not known_free and n_free >= 5
@@ -618,6 +648,19 @@ def test_screen_stops_on_the_way_into_a_known_minimum():
     assert float(jnp.max(0.5 * jnp.abs(jnp.sin(y_in) - jnp.sin(y_min)))) < _fit._NEAR_END
     _, n_high, known_high = solve(y_min[None], jnp.array([1e3]))
     assert not known_high and n_high == n_free
+    # options["screen"] False: plain Levenberg-Marquardt, step for step (the polish runs so in
+    # `_screen_polish`), even with the known end that stopped it above
+    y_lm, n_lm, _ = solve(y_min[None], jnp.array([0.0]), solver_cls=optx.LevenbergMarquardt)
+    y_off, n_off, known_off, res_off = solve(y_min[None], jnp.array([0.0]), screen=False,
+                                             full=True)
+    assert not known_off and n_off == n_lm > n_in and res_off == optx.RESULTS.successful
+    np.testing.assert_array_equal(y_off, y_lm)
+    # options["cap"]: stops after that many steps with max_steps' result code
+    y_cap, n_cap, _, res_cap = solve(jnp.array([[-1.0, 1.0]]), jnp.array([0.0]), cap=3,
+                                     full=True)
+    assert n_cap == 3 and res_cap == optx.RESULTS.nonlinear_max_steps_reached
+    _, _, _, res_max = solve(jnp.array([[-1.0, 1.0]]), jnp.array([0.0]), cap=n_free, full=True)
+    assert res_max == optx.RESULTS.successful  # converged on its last allowed step: not capped
 
 
 def test_parameter_with_a_huge_tile_robust_error_is_not_identifiable():
