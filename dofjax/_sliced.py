@@ -209,6 +209,13 @@ def _upsample(x, s: int):
     return x
 
 
+def _window(x, a: int, b: int, h: int, w: int):
+    """x[..., a: a + h, b: b + w] as one `lax.slice` (the same program; NumPy-style indexing
+    costs ~10x the tracing time, and the blurs take thousands of these)."""
+    start = (0,) * (x.ndim - 2) + (a, b)
+    return jax.lax.slice(x, start, x.shape[:-2] + (a + h, b + w))
+
+
 def _blur(fields, kernel: np.ndarray, pad: int):
     """'Same' convolution of each (C, h, w) field with a static (K, K) kernel by shifted sums,
     from fields already zero-padded by `pad` >= K // 2 on every side ((C, h + 2 pad,
@@ -232,7 +239,7 @@ def _blur(fields, kernel: np.ndarray, pad: int):
         out = 0.0
         for value, taps in groups.items():
             # out(y, x) = sum_t field((y, x) - t) K(t), t = (i - r, j - r)
-            part = sum(field[..., a: a + h, b: b + w]
+            part = sum(_window(field, a, b, h, w)
                        for a, b in ((o + 2 * r - i, o + 2 * r - j) for i, j in taps))
             out = out + value * part
         outs.append(out)
