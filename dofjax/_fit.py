@@ -234,6 +234,7 @@ class _Spec:
     scan_points: int  # full-resolution scan of u, forward passes only (0: none)
     robust_rounds: int
     scan_refine: int  # _SCAN_REFINE, or 0: every scan point at full resolution (_prepare)
+    batch: bool  # vmapped over targets (fit_focus_batch)
 
 
 class _Extras(eqx.Module):
@@ -644,6 +645,7 @@ def _screen_polish(ys, loss, steps, dup, priority, u_scene, data, camera, param,
     each robust round. Written as two loops (`_screen`, `_polish`), the full-resolution model
     and its Jacobian are compiled twice: as one, a 256x256 fit compiled in ~2 s less (first
     call ~21.6 -> ~19.5 s, `benchmarks/fit_speed.py`). Returns `_polish`'s outputs and has_alt.
+    Not used by a vmapped robust fit (see `_fit_core`).
     """
     k = ys.shape[0]
     dup = _dedupe(ys, dup)
@@ -909,9 +911,11 @@ def _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_sc
     rounds = 1 + (spec.robust_rounds if spec.auto_scale else 0)
     screens = bool(spec.factors) and spec.screen_steps > 0
     # the full-resolution screen and the polish share one solve (one compiled copy of the
-    # model's Jacobian) where they fit the same data with the same solver
+    # model's Jacobian) where they fit the same data with the same solver; not for a vmapped
+    # robust fit, where the `cond` around the scale's re-estimate becomes a `select` and would
+    # run its forward pass on every task
     merged = (_SHARED_POLISH and screens and spec.solver == "lm" and _factor(data) == 1
-              and spec.model == spec.search_model)
+              and spec.model == spec.search_model and not (spec.batch and spec.auto_scale))
     if screens:
         # Coarse to fine: every start is refined on each finer level of the pyramid, then at
         # full resolution, and the pair to polish is picked there. The multi-start level's
@@ -1472,7 +1476,7 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         # scans every point at full resolution and skips the half-resolution pass; so does a
         # fit whose level below full resolution is the multi-start's (128x128 images): there,
         # it lost 3 of 101 noise-free cases to other basins (reported ok)
-        scan_refine=0 if batch or len(factors) < 2 else _SCAN_REFINE)
+        scan_refine=0 if batch or len(factors) < 2 else _SCAN_REFINE, batch=bool(batch))
     data = _Data(target=jnp.asarray(tgt, dtype), rgb=jnp.asarray(rgb_a, dtype),
                  depth=jnp.asarray(depth_a, dtype), weight=jnp.asarray(weight, dtype),
                  extras=extras)
