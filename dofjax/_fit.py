@@ -643,23 +643,22 @@ def _screen_polish(ys, loss, steps, dup, priority, u_scene, data, camera, param,
     Tasks 0..k-1 screen the points `ys` (k of them, in the order of `priority`), task k picks
     the pair from their end points and polishes the best, k + 1 the alternative, and so on for
     each robust round. Written as two loops (`_screen`, `_polish`), the full-resolution model
-    and its Jacobian are compiled twice: as one, a 256x256 fit compiled in ~2 s less (first
-    call ~21.6 -> ~19.5 s, `benchmarks/fit_speed.py`). Returns `_polish`'s outputs and has_alt.
+    and its Jacobian are compiled twice: as one, a 256x256 fit compiles in ~2.4 s less (21.2-22.1
+    -> 18.7-19.3 s, `benchmarks/fit_speed.py`'s fit; benchmarks/README.md). Returns `_polish`'s
+    outputs and has_alt.
     Not used by a vmapped robust fit (see `_fit_core`).
     """
     k = ys.shape[0]
     dup = _dedupe(ys, dup)
     order = jnp.argsort(jnp.where(dup, jnp.inf, priority))
     inf = jnp.asarray(jnp.inf, loss.dtype)
-    no = jnp.asarray(False)
     n = 3 * data.target.shape[0] * data.target.shape[1]
     jacs = (jnp.zeros((3, n, len(spec.free)), data.target.dtype),  # the pair's and a spare
             jnp.zeros((3, n), data.target.dtype))
-    # screened: ys, loss (+inf: dropped), steps, ok, dropped; pair: ys, loss, steps, ok, has_alt
-    screened = (ys, jnp.full(k, inf), jnp.zeros_like(steps), jnp.zeros(k, bool),
-                jnp.zeros(k, bool))
+    # screened: ys, loss (+inf: dropped), steps, ok; pair: ys, loss, steps, ok, has_alt
+    screened = (ys, jnp.full(k, inf), jnp.zeros_like(steps), jnp.zeros(k, bool))
     pair = (jnp.zeros((2,) + ys.shape[1:], ys.dtype), jnp.zeros(2, loss.dtype),
-            jnp.zeros(2, steps.dtype), jnp.zeros(2, bool), no)
+            jnp.zeros(2, steps.dtype), jnp.zeros(2, bool), jnp.asarray(False))
 
     def pick(sy, sloss, ssteps, sok):
         ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(sy)
@@ -669,9 +668,9 @@ def _screen_polish(ys, loss, steps, dup, priority, u_scene, data, camera, param,
 
     def task(carry, t):
         screened, pair, jacs, delta = carry
-        sy, sloss, ssteps, sok, sdrop = screened
+        sy, sloss, ssteps, sok = screened
         is_screen = t < k
-        pair = jax.tree.map(lambda a, b: jnp.where(t == k, a, b), pick(*screened[:4]), pair)
+        pair = jax.tree.map(lambda a, b: jnp.where(t == k, a, b), pick(*screened), pair)
         py, ploss, psteps, pok, has_alt = pair
         i = order[jnp.minimum(t, k - 1)]  # the point to screen
         j = jnp.maximum(t - k, 0) % 2  # the member of the pair to polish
@@ -684,12 +683,11 @@ def _screen_polish(ys, loss, steps, dup, priority, u_scene, data, camera, param,
         y0 = jnp.where(is_screen, sy[i], py[j])
 
         def solve(_):
-            y, lo, st, ok, jac, known = _solve(
+            return _solve(
                 y0, data, camera, param, spec, model, jnp.where(is_screen, delta0, delta),
                 jnp.where(is_screen, r1, spec.rtol), jnp.where(is_screen, a1, spec.atol),
                 ends=(sy, sloss), damping=jnp.where(is_screen, damping, 1.0),
                 screen=is_screen, cap=jnp.where(is_screen, spec.screen_steps, spec.max_steps))
-            return y, lo, st, ok, jac, known
 
         def skip(_):
             return (y0, jnp.where(is_screen, inf, ploss[j]), jnp.zeros((), steps.dtype),
@@ -700,7 +698,7 @@ def _screen_polish(ys, loss, steps, dup, priority, u_scene, data, camera, param,
         y, lo, st, ok, jac, known = jax.lax.cond(skipped, skip, solve, None)
         # a screen that stopped on its way into a known minimum: no new end, out of the pick
         new_screened = (sy.at[i].set(y), sloss.at[i].set(jnp.where(known, inf, lo)),
-                        ssteps.at[i].set(st), sok.at[i].set(ok & ~known), sdrop.at[i].set(known))
+                        ssteps.at[i].set(st), sok.at[i].set(ok & ~known))
         new_pair = (py.at[j].set(y), ploss.at[j].set(lo), psteps.at[j].add(st),
                     pok.at[j].set(ok), has_alt)
         screened = jax.tree.map(lambda a, b: jnp.where(is_screen, a, b), new_screened, screened)
