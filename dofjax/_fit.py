@@ -233,8 +233,15 @@ class _Spec:
     screen_steps: int  # max steps per screening solve of every start on each finer level (0: none)
     scan_points: int  # full-resolution scan of u, forward passes only (0: none)
     robust_rounds: int
-    scan_refine: int  # _SCAN_REFINE, or 0: every scan point at full resolution (_prepare)
     batch: bool  # vmapped over targets (fit_focus_batch)
+
+    @property
+    def scan_refine(self) -> int:
+        """`_SCAN_REFINE`, or 0: every scan point at full resolution. Vmapped, a skipped loss is
+        computed anyway (the cond becomes a select), so a batch skips the half-resolution pass;
+        so does a fit whose level below full resolution is the multi-start's (128x128 images):
+        there, it lost 3 of 101 noise-free cases to other basins (reported ok)."""
+        return 0 if self.batch or len(self.factors) < 2 else _SCAN_REFINE
 
 
 class _Extras(eqx.Module):
@@ -471,12 +478,12 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, ends=None, d
     # float rounding of the model's pixels (a few eps of the image's rms), as a mean square
     eps = jnp.finfo(data.target.dtype).eps
     floor = jnp.square(8.0 * eps) * jnp.mean(jnp.square(data.target))
-    screen, flag = ends is not None and spec.solver == "lm", screen
+    screen_lm = ends is not None and spec.solver == "lm"  # `_ScreenLM`
     options = None
-    if screen:
-        options = dict(ends=ends[0], end_loss=ends[1], screen=jnp.asarray(flag),
+    if screen_lm:
+        options = dict(ends=ends[0], end_loss=ends[1], screen=jnp.asarray(screen),
                        cap=jnp.asarray(spec.max_steps if cap is None else cap))
-    sol = optx.least_squares(fn, _make_solver(spec, rtol, atol, floor, screen, damping), y0,
+    sol = optx.least_squares(fn, _make_solver(spec, rtol, atol, floor, screen_lm, damping), y0,
                              args=(delta, data, camera, param), options=options, has_aux=True,
                              max_steps=spec.max_steps, throw=False)
     # The solver's state holds f at the last accepted y (= sol.value) and the aux (J) with it:
@@ -491,7 +498,7 @@ def _solve(y0, data, camera, param, spec, model, delta, rtol, atol, ends=None, d
     out = (sol.value, loss, sol.stats["num_steps"], sol.result == optx.RESULTS.successful,
            (jac, res))
     if ends is not None:  # and whether the screen stopped at a known minimum (`_ScreenLM`)
-        out += (_ScreenLM.known(sol.value, options, sol.state) if screen
+        out += (_ScreenLM.known(sol.value, options, sol.state) if screen_lm
                 else jnp.asarray(False),)
     return out
 
@@ -660,17 +667,12 @@ def _screen_polish(ys, loss, steps, dup, priority, u_scene, data, camera, param,
     pair = (jnp.zeros((2,) + ys.shape[1:], ys.dtype), jnp.zeros(2, loss.dtype),
             jnp.zeros(2, steps.dtype), jnp.zeros(2, bool), jnp.asarray(False))
 
-    def pick(sy, sloss, ssteps, sok):
-        ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(sy)
-        best, alt, has_alt = _pick(ul_end[:, 0], sloss, u_scene)
-        idx = jnp.stack([best, alt])
-        return sy[idx], sloss[idx], steps[idx] + ssteps[idx], sok[idx], has_alt
-
     def task(carry, t):
         screened, pair, jacs, delta = carry
         sy, sloss, ssteps, sok = screened
         is_screen = t < k
-        pair = jax.tree.map(lambda a, b: jnp.where(t == k, a, b), pick(*screened), pair)
+        picked = _pair(sy, sloss, steps + ssteps, sok, u_scene, param, spec)
+        pair = jax.tree.map(lambda a, b: jnp.where(t == k, a, b), picked, pair)
         py, ploss, psteps, pok, has_alt = pair
         i = order[jnp.minimum(t, k - 1)]  # the point to screen
         j = jnp.maximum(t - k, 0) % 2  # the member of the pair to polish
@@ -724,6 +726,15 @@ def _pick(u_end, losses, u_scene):
     other = (side != side[best]) & jnp.isfinite(losses)  # not the screen's drop-outs
     alt = jnp.argmin(jnp.where(other, losses, jnp.inf))
     return best, jnp.where(jnp.any(other), alt, best), jnp.any(other)
+
+
+def _pair(ys, loss, steps, ok, u_scene, param, spec):
+    """The (best, alternative) end points to polish (`_pick`): (ys, loss, steps, ok) of the
+    two, and whether there is an alternative."""
+    ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(ys)
+    best, alt, has_alt = _pick(ul_end[:, 0], loss, u_scene)
+    idx = jnp.stack([best, alt])
+    return ys[idx], loss[idx], steps[idx], ok[idx], has_alt
 
 
 def _dedupe(ys, dup):
@@ -969,12 +980,9 @@ def _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_sc
             ys, loss, steps, ok, dup = _screen(ys, loss, steps, dup, priority, d_g, cam_g,
                                                param, spec, model_g, delta0, r1, a1, damping)
     if not merged:
-        ul_end = jax.vmap(lambda y: param.to_ul(y, spec.free))(ys)
-        best, alt, has_alt = _pick(ul_end[:, 0], loss, u_scene)
-        idx = jnp.stack([best, alt])
-        pair, pair_loss, pair_steps, pair_ok = ys[idx], loss[idx], steps[idx], ok[idx]
-        polished = _polish((pair, pair_loss, pair_steps, pair_ok), has_alt, data, fine, param,
-                           spec, spec.model, delta0, rtol, atol, rounds)
+        *pair, has_alt = _pair(ys, loss, steps, ok, u_scene, param, spec)
+        polished = _polish(tuple(pair), has_alt, data, fine, param, spec, spec.model, delta0, rtol,
+                           atol, rounds)
     pair, pair_loss, pair_steps, pair_ok, delta, jacs = polished
     # The polish can swap the order of the two minima.
     order = jnp.where(pair_loss[1] < pair_loss[0], jnp.array([1, 0]), jnp.array([0, 1]))
@@ -1469,12 +1477,7 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         auto_scale=(loss != "l2" and loss_scale is None), free=free, rtol=float(rtol),
         atol=float(atol), max_steps=int(max_steps), factors=factors, robust_rounds=robust_rounds,
         start_steps=int(start_steps), screen_steps=int(screen_steps),
-        scan_points=int(scan_points),
-        # vmapped, a skipped loss is computed anyway (the cond becomes a select), so a batch
-        # scans every point at full resolution and skips the half-resolution pass; so does a
-        # fit whose level below full resolution is the multi-start's (128x128 images): there,
-        # it lost 3 of 101 noise-free cases to other basins (reported ok)
-        scan_refine=0 if batch or len(factors) < 2 else _SCAN_REFINE, batch=bool(batch))
+        scan_points=int(scan_points), batch=bool(batch))
     data = _Data(target=jnp.asarray(tgt, dtype), rgb=jnp.asarray(rgb_a, dtype),
                  depth=jnp.asarray(depth_a, dtype), weight=jnp.asarray(weight, dtype),
                  extras=extras)
