@@ -77,7 +77,8 @@ def run_case(kind, focus, aperture, dtype, method="pyramid"):
     fd_err = None
     kinks = []
     if dtype == np.float64:
-        loss0 = abs(float(loss(d, a)))
+        f0 = float(loss(d, a))
+        loss0 = abs(f0)
         errs = []
         for i, (x, gx) in enumerate(((focus, g[0]), (aperture, g[1]))):
             # central differences with the smallest step 1e-6, 1e-5, ... 1e-3 of |x| whose
@@ -87,15 +88,15 @@ def run_case(kind, focus, aperture, dtype, method="pyramid"):
             def at(t):
                 return float(loss(t, a) if i == 0 else loss(d, t))
 
-            def central(h):
-                return (at(x + h) - at(x - h)) / (2 * h)
-
-            def asymmetry(h):  # forward minus backward difference: h f''(x) + O(h^3) if smooth
-                return (at(x + h) - 2.0 * at(x) + at(x - h)) / h
+            def differences(h):
+                """The central difference, and forward minus backward: h f''(x) + O(h^3) where
+                f is smooth."""
+                fp, fm = at(x + h), at(x - h)
+                return (fp - fm) / (2 * h), (fp - 2.0 * f0 + fm) / h
 
             for rel in (1e-6, 1e-5, 1e-4, 1e-3):
                 h = rel * max(abs(x), 1e-6)
-                fd = central(h)
+                fd, asym = differences(h)
                 floor = 1e-16 * loss0 / h
                 if max(abs(fd), abs(float(gx))) >= 1e6 * floor:
                     scale = max(abs(fd), abs(float(gx)))
@@ -107,9 +108,9 @@ def run_case(kind, focus, aperture, dtype, method="pyramid"):
                     # 10x smaller step, where f'' would make it 10x, roundoff 7x or more: the
                     # lens method's per-ray occlusion), no difference quotient converges to the
                     # gradient.
-                    asym = abs(asymmetry(h))
-                    if (abs(central(10 * h) - fd) > 1e-3 * scale
-                            or asym > 1e-5 * scale and abs(asymmetry(10 * h)) < 5.0 * asym):
+                    fd10, asym10 = differences(10 * h)
+                    if (abs(fd10 - fd) > 1e-3 * scale
+                            or abs(asym) > 1e-5 * scale and abs(asym10) < 5.0 * abs(asym)):
                         kinks.append(PARAM_NAMES[i])
                     else:
                         errs.append(abs(float(gx) - fd) / scale)
