@@ -24,6 +24,33 @@ class Layers(eqx.Module):
     alpha: Float[Array, "k h w"]
 
 
+class Mirror(eqx.Module):
+    """What mirrors show, for a defocus that keeps reflections inside the mirror's footprint.
+
+    A lens sees a mirror's reflection only through the mirror: a ray from a lens point crosses
+    the mirror's plane near the pixel (offset by the CoC at the mirror's depth) and, if it hits
+    the mirror there, sees the virtual scene (offset by the CoC at the virtual depth). The defocus
+    therefore needs the mirror's footprint and what the reflection shows a little beyond it (the
+    blurred reflection near a mirror edge collects radiance from beyond the edge).
+
+    Attributes:
+        coverage: (H, W) fraction of the pixel covered by mirrors (the primary hit's mirror weight
+            is > 0), in [0, 1].
+        radiance: (H, W, 3) the mirror-weighted radiance the mirror shows, per unit coverage: on
+            the footprint (coverage > 0) the part of `RGBD.rgb` that came through mirrors divided
+            by the coverage; beyond it what the plane of the nearest mirror pixel, extended, would
+            show (weighted by that mirror's weight); 0 where no mirror plane is in front of the
+            camera. So `coverage * radiance` is `RGBD.reflection`.
+        depth: (H, W) virtual z-depth of what `radiance` shows (`RGBD.reflection_depth` on the
+            footprint, the same convention beyond it), +inf where the reflected ray escapes or
+            no mirror plane is crossed.
+    """
+
+    coverage: Float[Array, "h w"]
+    radiance: Float[Array, "h w 3"]
+    depth: Float[Array, "h w"]
+
+
 class RGBD(eqx.Module):
     """A sharp render: colour, z-depth, and what the defocus stage needs to be honest.
 
@@ -38,6 +65,9 @@ class RGBD(eqx.Module):
             ray escapes), or None.
         layers: peeled layers from `render(..., layers=K)`, or None. Layer 0 is the first surface;
             its colour includes `reflection`, exactly like `rgb`.
+        mirror: `Mirror` (footprint and the reflection beyond it) for scenes with mirrors, or None.
+            With it the defocus confines each reflection to its (blurred) mirror; without it the
+            reflection is blurred at its virtual depth and added unconfined.
     """
 
     rgb: Float[Array, "h w 3"]
@@ -45,6 +75,7 @@ class RGBD(eqx.Module):
     reflection: Float[Array, "h w 3"] | None = None
     reflection_depth: Float[Array, "h w"] | None = None
     layers: Layers | None = None
+    mirror: Mirror | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
