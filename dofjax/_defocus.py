@@ -26,7 +26,14 @@ Algorithm (a layered pyramid):
    explicit hidden-background layer (pull-push fill of the locally farthest pixels, placed behind
    pixels that are > 1-2 px of CoC nearer than the farthest surface within the window).
 6. Mirrors: the reflected radiance is a separate, additive source blurred at its own virtual depth;
-   the mirror surface keeps the rest of the colour at the mirror's depth.
+   the mirror surface keeps the rest of the colour at the mirror's depth. With the mirror's
+   footprint (`RGBD.mirror`, a `Mirror`), the blurred reflection is confined to the blurred
+   footprint: reflection = C * S, C the footprint (coverage) scattered at the mirror's own depth
+   without occlusion and S the radiance (known a little beyond the footprint) scattered at its
+   virtual depth. A lens sees the reflection only through the mirror, so an in-focus mirror edge
+   stays sharp however blurred the reflection (the unconfined scatter leaked it up to the
+   reflection's CoC past the edge and darkened the mirror inside it, where the virtual scene
+   beyond the footprint was missing).
 
 All of it is smooth jnp maths on fixed shapes, so forward- and reverse-mode derivatives w.r.t.
 `focus_distance`, `aperture_radius` and the colours cost a small multiple of the forward pass.
@@ -74,7 +81,7 @@ from ._kernels import (
 )
 from ._lens import LENS_SAMPLES, lens_defocus, levels as lens_levels
 from ._numerics import box_pool, inverse_depth
-from ._rgbd import RGBD, Layers
+from ._rgbd import RGBD, Layers, Mirror
 from ._sliced import sliced_defocus, sliced_defocus_adjoint, sliced_defocus_jacobian
 
 METHODS = ("pyramid", "sliced", "lens")
@@ -113,6 +120,7 @@ class _Config:
     ratio: float
     hidden: bool  # estimate the hidden background (single-layer input)
     mirror: bool
+    masked: bool = False  # the reflection confined to the blurred mirror footprint
 
 
 # ---------------------------------------------------------------------------------------------
@@ -165,7 +173,7 @@ def _shape_config(shape, blades, rotation, ratio):
     return blades, rotation, ratio
 
 
-def _validate(rgb, depth, camera, reflection, reflection_depth, layers):
+def _validate(rgb, depth, camera, reflection, reflection_depth, layers, mirror=None):
     if not isinstance(camera, Camera):
         raise TypeError(f"defocus: camera must be a dofjax.Camera, got {type(camera).__name__}")
     if rgb.ndim != 3 or rgb.shape[-1] != 3:
@@ -203,6 +211,25 @@ def _validate(rgb, depth, camera, reflection, reflection_depth, layers):
             )
         _check_finite("reflection", reflection)
         _check_depth("reflection_depth", reflection_depth)
+    if mirror is not None:
+        if not isinstance(mirror, Mirror):
+            raise TypeError(f"defocus: mirror must be a dofjax Mirror, got {type(mirror).__name__}")
+        if (mirror.coverage.shape != (h, w) or mirror.radiance.shape != (h, w, 3)
+                or mirror.depth.shape != (h, w)):
+            raise ValueError(
+                f"defocus: mirror must be coverage ({h}, {w}), radiance ({h}, {w}, 3) and depth "
+                f"({h}, {w}); got {mirror.coverage.shape}, {mirror.radiance.shape}, "
+                f"{mirror.depth.shape}"
+            )
+        _check_finite("mirror.coverage", mirror.coverage)
+        _check_finite("mirror.radiance", mirror.radiance)
+        _check_depth("mirror.depth", mirror.depth)
+        if _is_concrete(mirror.coverage):
+            a = np.asarray(mirror.coverage)
+            if a.min() < 0 or a.max() > 1:
+                raise ValueError(
+                    f"defocus: mirror.coverage must be in [0, 1], got [{a.min()}, {a.max()}]"
+                )
     if layers is not None:
         if not isinstance(layers, Layers):
             raise TypeError(f"defocus: layers must be a dofjax Layers, got {type(layers).__name__}")
@@ -312,11 +339,14 @@ def _pool(x, scale: int):
 
 
 @partial(jax.jit, static_argnames=("config",))
-def _core(rgb, inv, alpha, refl, refl_inv, focus_distance, aperture_radius, pixel_scale, config):
+def _core(rgb, inv, alpha, refl, refl_inv, cover, focus_distance, aperture_radius, pixel_scale,
+          config):
     """Defocus of sources rgb (L, H, W, 3), inverse depth inv (L, H, W), coverage alpha (L, H, W).
 
     refl/refl_inv: (H, W, 3)/(H, W) mirror radiance and its inverse virtual depth (or dummies when
-    config.mirror is False). Returns (image (H, W, 3), max |c| over all sources).
+    config.mirror is False); cover: (H, W) mirror footprint (config.masked; else a dummy), which
+    confines the blurred reflection (module docstring, step 6).
+    Returns (image (H, W, 3), max |c| over all sources).
     """
     plan = make_plan(config.window, config.blades, config.rotation, config.ratio)
     table = moment_table(config.blades, config.rotation, config.ratio)
@@ -371,6 +401,8 @@ def _core(rgb, inv, alpha, refl, refl_inv, focus_distance, aperture_radius, pixe
         chans = [col, a_front[:, None], a_back[:, None]]
         if config.mirror:
             chans.append(wr[sel][:, None] * refl_c[None])
+        if config.masked:  # the footprint at the visible surface's (the mirror's) depth
+            chans.append(weights[0][0][sel][:, None] * cover[None, None])
         x = padded(jnp.concatenate(chans, axis=1))  # (G, C, Hp, Wp)
         groups.append((s, idx, _pool(x, s)))
     ys = [y[:, :h, :w] for y in _pyramid_blur(groups, plan)]
@@ -381,6 +413,7 @@ def _core(rgb, inv, alpha, refl, refl_inv, focus_distance, aperture_radius, pixe
     gap = 1  # a source never occludes itself across its two slices
     a_hist, af_hist = [], []
     refl_sum = 0.0
+    cover_sum = 0.0
     for p, y in enumerate(ys):
         b, af, ab = y[:3], y[3], y[4]
         a = af + ab
@@ -392,9 +425,13 @@ def _core(rgb, inv, alpha, refl, refl_inv, focus_distance, aperture_radius, pixe
         den = den + t * a
         if config.mirror:
             refl_sum = refl_sum + y[5:8]
+        if config.masked:
+            cover_sum = cover_sum + y[8]
         a_hist.append(a)
         af_hist.append(af)
     out = num / jnp.maximum(den, 1e-6)[None]
+    if config.masked:
+        refl_sum = cover_sum[None] * refl_sum
     if config.mirror:
         out = out + refl_sum
     return jnp.moveaxis(out, 0, -1), max_abs
@@ -425,25 +462,26 @@ def _with_hidden(rgb, depth, reflection, layers, window, method, hidden):
 
 
 def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blades, rotation, ratio,
-         method="pyramid", samples=None, hidden=True):
+         method="pyramid", samples=None, hidden=True, mirror=None):
     """The defocus by `method`; `hidden`: the hidden-background estimate for single-layer
-    input (the sliced method gets it from `_with_hidden`)."""
+    input (the sliced method gets it from `_with_hidden`); `mirror`: a `Mirror` (footprint and
+    radiance beyond it) or None (`reflection` blurred unconfined)."""
     if method == "lens":  # plain autodiff: sheet positions are constants, weights are cheap
         out = lens_defocus(rgb, depth, camera, window=window, blades=blades, rotation=rotation,
                            ratio=ratio, reflection=reflection, reflection_depth=reflection_depth,
                            layers=layers, samples=LENS_SAMPLES if samples is None else int(samples),
-                           hidden=hidden)
+                           hidden=hidden, mirror=mirror)
         return out, None
     if method == "sliced":
         layers = _with_hidden(rgb, depth, reflection, layers, window, method, hidden)
         def at(fn):
             """fn (`sliced_defocus` or `sliced_defocus_jacobian`) at focus, aperture = y."""
             def call(y, a):
-                rgb, depth, camera, reflection, reflection_depth, layers = a
+                rgb, depth, camera, reflection, reflection_depth, layers, mirror = a
                 cam = camera.replace(focus_distance=y[0], aperture_radius=y[1])
                 return fn(rgb, depth, cam, window=window, blades=blades, rotation=rotation,
                           ratio=ratio, reflection=reflection, reflection_depth=reflection_depth,
-                          layers=layers)
+                          layers=layers, mirror=mirror)
             return call
 
         y = jnp.stack(jnp.broadcast_arrays(jnp.asarray(camera.focus_distance),
@@ -466,23 +504,27 @@ def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blade
         adjoint = None if tracing_forward_only() else functools.partial(
             sliced_defocus_adjoint, window=window, blades=blades, rotation=rotation, ratio=ratio)
         out = dense_jacobian(at(sliced_defocus), y,
-                             (rgb, depth, rest, reflection, reflection_depth, layers),
+                             (rgb, depth, rest, reflection, reflection_depth, layers, mirror),
                              at(functools.partial(sliced_defocus_jacobian,
                                                   residuals=adjoint is not None)),
                              adjoint=adjoint)
         return out, None
     dtype = rgb.dtype
     src_rgb, src_inv, src_a = _sources(rgb, depth, reflection, layers, dtype)
-    mirror = reflection is not None
-    if mirror:
+    has_mirror = reflection is not None
+    cover = jnp.zeros((1, 1), dtype)
+    if mirror is not None:
+        refl, refl_inv, cover = mirror.radiance, inverse_depth(mirror.depth), mirror.coverage
+    elif has_mirror:
         refl = reflection
         refl_inv = inverse_depth(reflection_depth)
     else:
         refl = jnp.zeros((1, 1, 3), dtype)
         refl_inv = jnp.zeros((1, 1), dtype)
-    config = _Config(float(window), blades, rotation, ratio, layers is None and hidden, mirror)
+    config = _Config(float(window), blades, rotation, ratio, layers is None and hidden, has_mirror,
+                     mirror is not None)
     return _core(
-        src_rgb, src_inv, src_a, refl, refl_inv,
+        src_rgb, src_inv, src_a, refl, refl_inv, cover,
         jnp.asarray(camera.focus_distance, dtype), jnp.asarray(camera.aperture_radius, dtype),
         jnp.asarray(camera.pixel_scale, dtype), config,
     )
@@ -522,7 +564,7 @@ def check_samples(name: str, samples, method: str) -> None:
 
 
 def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, method, shape, blades,
-            rotation, ratio, samples=None, margin=0, hidden=None):
+            rotation, ratio, samples=None, margin=0, hidden=None, mirror=None):
     """Unpack `(rgb, depth, camera)` or `(rgbd, camera)`, convert and validate on the host: the one
     input path of `defocus` and `defocus_fn`."""
     if isinstance(rgb, RGBD):
@@ -533,6 +575,7 @@ def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, meth
         reflection = rgbd.reflection if reflection is None else reflection
         reflection_depth = rgbd.reflection_depth if reflection_depth is None else reflection_depth
         layers = rgbd.layers if layers is None else layers
+        mirror = rgbd.mirror if mirror is None else mirror
     elif camera is None:
         raise TypeError(f"{name}: call as {name}(rgb, depth, camera) or {name}(rgbd, camera)")
     if method not in METHODS:
@@ -545,13 +588,22 @@ def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, meth
     rgb = _as_array(rgb)
     dtype = rgb.dtype
     depth = _as_array(depth, dtype)
+    if mirror is not None:
+        if not isinstance(mirror, Mirror):
+            raise TypeError(f"{name}: mirror must be a dofjax Mirror, got {type(mirror).__name__}")
+        mirror = Mirror(coverage=_as_array(mirror.coverage, dtype),
+                        radiance=_as_array(mirror.radiance, dtype),
+                        depth=_as_array(mirror.depth, dtype))
     reflection = _as_array(reflection, dtype)
     reflection_depth = _as_array(reflection_depth, dtype)
     s = supersampling(rgb.shape, camera)
     camera = camera.scaled(s)
-    _validate(rgb, depth, camera, reflection, reflection_depth, layers)
+    _validate(rgb, depth, camera, reflection, reflection_depth, layers, mirror)
+    if mirror is not None and reflection is None:  # the part of rgb the mirror makes
+        reflection = mirror.coverage[..., None] * mirror.radiance
+        reflection_depth = mirror.depth
     return (rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio, s,
-            hidden)
+            hidden, mirror)
 
 
 def _crop(margin: int) -> tuple[slice, slice]:
@@ -582,6 +634,7 @@ def defocus(
     reflection: ArrayLike | None = None,
     reflection_depth: ArrayLike | None = None,
     layers: Layers | None = None,
+    mirror: Mirror | None = None,
     window: float | None = None,
     return_info: bool = False,
     method: str = "pyramid",
@@ -608,6 +661,10 @@ def defocus(
         ratio: anamorphic width / height of the aperture (1 = round).
         reflection, reflection_depth: (H, W, 3) radiance seen through mirrors (included in rgb)
             and its virtual z-depth; it is blurred at that depth instead of the mirror's.
+        mirror: a `Mirror` (from `render`, in `RGBD.mirror`): the mirrors' footprint and what they
+            show a little beyond it. The blurred reflection is then confined to the blurred
+            footprint (module docstring, step 6); reflection / reflection_depth default to
+            `coverage * radiance` / `depth`. Without it the reflection is added unconfined.
         layers: peeled surfaces (K, H, W, ...) from `render(..., layers=K)`: used instead of rgb and
             the hidden-background estimate, so blurred foreground edges uncover real surfaces.
         window: static largest |c| (px) to support; rounded up to a level magnitude (1, 2, 3, 4, 6,
@@ -645,8 +702,9 @@ def defocus(
             bad shape parameters. A clamped CoC is a `DefocusWarning`, not an error.
     """
     (rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio, s,
-     hidden) = _inputs("defocus", rgb, depth, camera, reflection, reflection_depth, layers,
-                       method, shape, blades, rotation, ratio, samples, margin, hidden)
+     hidden, mirror) = _inputs("defocus", rgb, depth, camera, reflection, reflection_depth,
+                               layers, method, shape, blades, rotation, ratio, samples, margin,
+                               hidden, mirror)
     crop = _crop(margin)
     # a supersampled input (s > 1): `camera` is now the fine one, CoCs in its pixels; the window
     # is given and reported, and the result returned, on the coarse grid
@@ -662,6 +720,8 @@ def defocus(
             zs.append(np.asarray(layers.depth)[np.asarray(layers.alpha) > 0])
         if reflection_depth is not None:
             zs.append(np.asarray(reflection_depth))
+        if mirror is not None:
+            zs.append(np.asarray(mirror.depth))
         inv = np.concatenate([1.0 / np.ravel(z).astype(np.float64) for z in zs])
         ak = float(camera.aperture_radius) * float(camera.pixel_scale)
         max_abs = float(np.max(np.abs(ak * (inv - 1.0 / float(camera.focus_distance)))))
@@ -692,7 +752,7 @@ def defocus(
             stacklevel=2,
         )
     out, _ = _run(rgb, depth, camera, reflection, reflection_depth, layers, win, blades, rotation,
-                  ratio, method, samples, hidden)
+                  ratio, method, samples, hidden, mirror)
     out = box_pool(out, s)[crop]
     if return_info:
         n = (len(lens_levels(win)) if method == "lens"
@@ -718,6 +778,7 @@ def defocus_fn(
     samples: int | None = None,
     margin: int = 0,
     hidden: bool | None = None,
+    mirror: Mirror | None = None,
 ):
     """A pure, jittable `f(focus_distance, aperture_radius) -> (H, W, 3)` for fitting.
 
@@ -738,15 +799,17 @@ def defocus_fn(
         window: largest |c| (px) the solver may reach (e.g. from its bounds on u = 1/d and A:
             `A_max * k * max|1/z - u|`), rounded up to a level magnitude; larger |c| is clamped
             to it (call `f.max_abs_coc(focus, aperture)` to check). None: 2x the camera's |c|.
-        shape, blades, rotation, ratio, reflection, reflection_depth, layers: as `defocus`.
+        shape, blades, rotation, ratio, reflection, reflection_depth, layers, mirror: as
+            `defocus`.
 
     Returns:
         f(focus_distance, aperture_radius): world units (scalars or 0-d arrays) -> image. The
         function also has `.window` (px) and `.max_abs_coc(focus, aperture)` (jittable).
     """
     (rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio, s,
-     hidden) = _inputs("defocus_fn", rgb, depth, camera, reflection, reflection_depth, layers,
-                       method, shape, blades, rotation, ratio, samples, margin, hidden)
+     hidden, mirror) = _inputs("defocus_fn", rgb, depth, camera, reflection, reflection_depth,
+                               layers, method, shape, blades, rotation, ratio, samples, margin,
+                               hidden, mirror)
     crop = _crop(margin)
     if window is None:
         c = np.abs(np.asarray(jnp.asarray(_coc_host(depth, camera)))) / s
@@ -765,7 +828,7 @@ def defocus_fn(
     def f(focus_distance, aperture_radius):
         out, _ = _run(rgb, depth, _cam(focus_distance, aperture_radius), reflection,
                       reflection_depth, layers, win, blades, rotation, ratio, method, samples,
-                      hidden)
+                      hidden, mirror)
         return box_pool(out, s)[crop]
 
     def max_abs_coc(focus_distance, aperture_radius):

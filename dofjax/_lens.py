@@ -39,7 +39,10 @@ every sample is its own pinhole-like ray through the layered scene:
    renormalised; elsewhere the scatter's energy is untouched (the reads' weights sum to 1, so a
    constant-depth image keeps its total away from the borders).
 4. The mirror layer's reflected radiance is read from its own sheets at its virtual depth and
-   added without occlusion, as the other methods do.
+   added without occlusion, as the other methods do. With the mirror's footprint (`Mirror`), each
+   ray also reads the footprint from sheets at the visible surface's depth and sees the
+   reflection only by that much: the ray's own product (through the mirror or not), where the
+   scatter methods multiply two averages over the lens.
 
 Hidden surfaces enter only where they lie at least one level behind the visible one (ramped
 over a second, continuous in focus and aperture): nearer, the two would share a bracket and the
@@ -185,7 +188,7 @@ def _sheets(sources, n):
 def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rotation=0.0,
                  ratio=1.0, reflection=None, reflection_depth=None, layers=None,
                  samples: int = LENS_SAMPLES, spacing: float = SLICE_SPACING, weights="q",
-                 interp="lanczos", hidden: bool = True):
+                 interp="lanczos", hidden: bool = True, mirror=None):
     """Defocus by lens-sampled slices (module docstring); pure and jittable (`window`, shape,
     `samples`, `spacing`, `weights` and `interp` static). Arguments as `dofjax.defocus`; no input
     validation here. `weights`: "q" (split linear in c |c|) or "c"; `interp`: "lanczos"
@@ -193,7 +196,8 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     in the module docstring.
 
     Single-layer input (`layers=None`) gets the hidden-background estimate as its extra source
-    (unless `hidden` is False).
+    (unless `hidden` is False). `mirror`: a `Mirror` (footprint, and the radiance and virtual
+    depth the reflection is read from) or None.
     |c| beyond the window is clamped to it.
     """
     height, width = depth.shape
@@ -202,11 +206,20 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     stack = _sheets(_sources(rgb, depth, camera, reflection, layers, window, lv, weights,
                              hidden),
                     len(lv))
+    masked = mirror is not None
+    if masked:
+        reflection, reflection_depth = mirror.radiance, mirror.depth
+        mirror_cover = mirror.coverage
     mirror = reflection is not None
     if mirror:
         c_r = jnp.clip(coc_radius(reflection_depth, camera).astype(dtype), -window, window)
         refl_sheets = _split(_index(c_r, lv, weights), len(lv))[..., None] * reflection[None]
         stack = jnp.concatenate([stack, refl_sheets], -1)
+    n_refl = 4 if masked else 3  # the reflection's channels (and the footprint's)
+    if masked:  # the footprint on the visible surface's sheets
+        c0 = jnp.clip(coc_radius(depth, camera).astype(dtype), -window, window)
+        cover_sheets = _split(_index(c0, lv, weights), len(lv)) * mirror_cover[None]
+        stack = jnp.concatenate([stack, cover_sheets[..., None]], -1)
     # the widest read is window * max|l| (+ the interpolation's taps) beyond the frame
     pts = lens_points(samples, blades, rotation, ratio)
     # per lens point and slice: the read's integer offset and each axis's tap weights (host)
@@ -259,7 +272,7 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
                     colour + (scale * t_front)[..., None] * g[..., 0:3]
                     + (scale * t_behind)[..., None] * g[..., 3:6],
                     cover + scale * seen,
-                    refl + g[..., 8:11] if mirror else refl)
+                    refl + g[..., 8:8 + n_refl] if mirror else refl)
 
         def skip(_):  # an empty slice (no source within a spacing of its level) reads zeros
             return hidden + prev_cover, zeros, zeros, colour, cover, refl
@@ -269,10 +282,12 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     @jax.checkpoint  # reverse mode keeps one carry per lens point, recomputes the sheets
     def ray(carry, x):
         off, w = x
-        refl0 = jnp.zeros((height, width, 3 if mirror else 0), dtype)
+        refl0 = jnp.zeros((height, width, n_refl if mirror else 0), dtype)
         init = (zeros, zeros, zeros, jnp.zeros((height, width, 3), dtype), zeros, refl0)
         (_, _, _, colour, cover, refl), _ = jax.lax.scan(sheet, init,
                                                           (stack, off, w, used))
+        if masked:  # this ray sees the reflection as far as it passes through the mirror
+            refl = refl[..., 3:4] * refl[..., :3]
         c_acc, v_acc, r_acc = carry
         return (c_acc + colour, v_acc + cover, r_acc + refl), None
 

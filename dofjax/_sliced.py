@@ -363,11 +363,13 @@ def _level_slopes(front_w, back_w, q_lv):
 
 
 def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_depth,
-                   lay: _Layout):
+                   lay: _Layout, mirror=None):
     """The sources stacked, in the padded frame of `lay` (zero outside the image): colours
     (S, 3, Hp, Wp), q = sign(c) c^2 (S, Hp, Wp), coverage (S, Hp, Wp), the mirror's reflected
-    radiance (3, Hp, Wp) and q (Hp, Wp) or None, and the peeled layers' coverage before
-    their gate (`_gate`; S, Hp, Wp) or None.
+    radiance (3, Hp, Wp) and q (Hp, Wp) or None, the peeled layers' coverage before
+    their gate (`_gate`; S, Hp, Wp) or None, and the mirror footprint (Hp, Wp) or None.
+    With `mirror` (a `Mirror`) the reflected radiance and its q are the mirror's (known beyond
+    the footprint), `reflection` only what is taken out of the visible colour.
 
     The inputs are padded, not the fields: depths by their edge values (every CoC stays
     finite), the rest by zeros, and q and the coverage are zeroed outside the image by a
@@ -389,7 +391,10 @@ def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_de
     c = jnp.stack([s[1] for s in srcs])
     alpha = jnp.where(inside, jnp.stack([s[2] for s in srcs]), 0.0)
     q = jnp.where(inside, jnp.sign(c) * c * c, 0.0)
-    q_r = refl = raw = None
+    q_r = refl = raw = cover = None
+    if mirror is not None:
+        reflection_depth, refl_p = mirror.depth, pad(mirror.radiance, mirror.radiance.ndim - 3)
+        cover = jnp.where(inside, pad(mirror.coverage, mirror.coverage.ndim - 2), 0.0)
     if reflection is not None:
         c_r = coc_radius(pad(reflection_depth, reflection_depth.ndim - 2, "edge"),
                          camera).astype(rgb.dtype)
@@ -397,14 +402,14 @@ def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_de
         refl = jnp.moveaxis(refl_p, -1, 0)
     if layers is not None:
         raw = alpha.at[1:].set(jnp.asarray(layers_p.alpha[1:], rgb.dtype))
-    return colour, q, alpha, refl, q_r, raw
+    return colour, q, alpha, refl, q_r, raw, cover
 
 
 @functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio",
                                              "min_radius"))
 def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rotation=0.0,
                    ratio=1.0, reflection=None, reflection_depth=None, layers=None,
-                   min_radius: float = MIN_LOW_RADIUS):
+                   min_radius: float = MIN_LOW_RADIUS, mirror=None):
     """Defocus by depth slices, each blurred by shifted sums at its own resolution (pure,
     jittable; `window` px and `min_radius` are static).
 
@@ -416,9 +421,9 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     levels = _levels(float(window))
     lay = _layout(float(window), blades, float(rotation), float(ratio), float(min_radius),
                   depth.shape[-2], depth.shape[-1])
-    colour, q, alpha, refl, q_r, _ = _source_fields(rgb, depth, layers, camera, levels,
-                                                    reflection, reflection_depth, lay)
-    out, _, _ = _composite(colour, q, alpha, refl, q_r, None, lay)
+    colour, q, alpha, refl, q_r, _, cover = _source_fields(
+        rgb, depth, layers, camera, levels, reflection, reflection_depth, lay, mirror)
+    out, _, _ = _composite(colour, q, alpha, refl, q_r, None, lay, cover=cover)
     return out
 
 
@@ -427,7 +432,7 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
 def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades=None,
                             rotation=0.0, ratio=1.0, reflection=None, reflection_depth=None,
                             layers=None, min_radius: float = MIN_LOW_RADIUS,
-                            residuals: bool = False):
+                            residuals: bool = False, mirror=None):
     """`sliced_defocus` and its derivatives w.r.t. focus_distance and aperture_radius:
     (out, (d out / d focus, d out / d aperture)), three (H, W, 3) images from one pass that
     carries both tangents beside the image.
@@ -448,8 +453,8 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     dtype = rgb.dtype
     lay = _layout(float(window), blades, float(rotation), float(ratio), float(min_radius),
                   depth.shape[-2], depth.shape[-1])
-    colour, q, alpha, refl, q_r, raw = _source_fields(rgb, depth, layers, camera, levels,
-                                                      reflection, reflection_depth, lay)
+    colour, q, alpha, refl, q_r, raw, cover = _source_fields(
+        rgb, depth, layers, camera, levels, reflection, reflection_depth, lay, mirror)
     directions = _directions(camera.focus_distance, camera.aperture_radius, camera.pixel_scale,
                              dtype)
     d_alpha = [None, None]
@@ -457,7 +462,7 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
         d_alpha = [jax.jvp(functools.partial(_gate, raw, levels), (q,), (dq(q),))[1]
                    for dq in directions]
     out, jac, res = _composite(colour, q, alpha, refl, q_r, list(zip(directions, d_alpha)),
-                               lay, residuals=residuals)
+                               lay, residuals=residuals, cover=cover)
     if not residuals:
         return out, tuple(jac)
     crop = lay.crop  # the adjoint's sums run over the image
@@ -606,7 +611,8 @@ def _layout(window, blades, rotation, ratio, min_radius, height, width) -> _Layo
                    -(-height // s_max) * s_max, -(-width // s_max) * s_max)
 
 
-def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: bool = False):
+def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: bool = False,
+               cover=None):
     """The slices of the sources (`_source_fields`, in the padded frame of the layout `lay`),
     blurred and composited (module docstring).
 
@@ -614,6 +620,8 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
     source's (and the mirror's) tangent of q from q: then the directional derivatives of the
     image come out too ((out, [d out, ...], res); else (out, [], res)).
     `residuals`: res is what `_composite_adjoint` needs of the value lane (else None).
+    `cover`: the mirror footprint (Hp, Wp) or None: then the blurred reflection is multiplied by
+    the footprint blurred at the visible surface's depth without occlusion (channel 6).
     Every quantity is carried as lanes (value, then one tangent per direction): linear steps
     (resampling, blurs) act on each lane alike, products get the product rule.
     """
@@ -629,7 +637,9 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
     mirror = refl is not None
     d_q = [t[0] for t in tangents]
     d_alpha = [t[1] for t in tangents]
-    nc = 6 if mirror else 3  # accumulated colour channels: surfaces (+ reflection)
+    masked = cover is not None
+    # accumulated colour channels: surfaces (+ reflection (+ the blurred footprint))
+    nc = 3 + 3 * mirror + masked
     run_ys = []  # per run: the value lane's (hiding, rgb_b, cov_b) of every slice, or None
     far_res = None
 
@@ -668,6 +678,8 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
         d_alpha_p = [padded(x) for x in d_alpha]
         if mirror:
             refl_p, q_r_p = padded(refl), padded(q_r)
+        if masked:
+            cover_p = padded(cover)
         xs = lay.level_table(i_run, dtype) + (ks,)
         each = range(colour.shape[0])
 
@@ -697,6 +709,8 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
             if mirror:
                 mirror_w = _level_weights(q_r_p, q3, first, last)
                 lanes[0].append(sum(mirror_w) * refl_p)
+            if masked:  # the footprint, at the visible surface's (the mirror's) depth
+                lanes[0].append((fw[0] + bw[0]) * cover_p)
             if tangents:
                 slopes = [_level_slopes(fw[k], bw[k], q3) for k in each]
                 if mirror:
@@ -719,6 +733,8 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
                 lanes.append(slice_parts(d_w, d_occ))
                 if mirror:
                     lanes[-1].append(mirror_s * d_q[i](q_r_p) * refl_p)
+                if masked:
+                    lanes[-1].append(sum(slopes[0]) * d_q[i](q_p[0]) * cover_p)
             fields = [_downsample(x, s) for parts in lanes for x in parts]
             state, ys = blur_composite(state, fields, kernel)
             if residuals:  # does any source (or the mirror) reach this slice?
@@ -739,7 +755,8 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
             transmit = jnp.clip(seen, 0.0, 1.0)
             colour_b = transmit * rgb_b
             if mirror:
-                colour_b = jnp.concatenate([colour_b, blurred[0][3]])
+                colour_b = jnp.concatenate([colour_b, blurred[0][3]]
+                                           + ([blurred[0][4][None]] if masked else []))
             out = [(acc_rgb + colour_b, acc_cov + transmit * cov_b, hiding_next + occ_b,
                     hiding_next + cov_b)]
             if tangents:
@@ -749,7 +766,8 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
                 d_transmit = jnp.where(inside, -d_hiding, 0.0)
                 d_colour_b = d_transmit * rgb_b + transmit * d_rgb_b
                 if mirror:
-                    d_colour_b = jnp.concatenate([d_colour_b, d_m[0]])
+                    d_colour_b = jnp.concatenate([d_colour_b, d_m[0]]
+                                                 + ([d_m[1][None]] if masked else []))
                 out.append((d_rgb + d_colour_b, d_cov + d_transmit * cov_b + transmit * d_cov_b,
                             d_next + d_occ_b, d_next + d_cov_b))
             # what the adjoint (`_composite_adjoint`) needs of this slice: the value lane's
@@ -819,18 +837,26 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
     den = jnp.minimum(acc_cov[:height, :width], 1.0)
     out = safe_div(acc_rgb[:3, :height, :width], den)
     douts = []
+    if mirror:
+        refl_b = acc_rgb[3:6, :height, :width]
+        cover_b = acc_rgb[6, :height, :width] if masked else None
     for d_rgb, d_cov, *_ in state[1:]:
         d_den = jnp.where(acc_cov[:height, :width] < 1.0, d_cov[:height, :width], 0.0)
         d_out = safe_div(d_rgb[:3, :height, :width] - out * d_den, den)
-        if mirror:
+        if masked:  # the product rule through footprint * reflection
+            d_out = (d_out + cover_b * d_rgb[3:6, :height, :width]
+                     + d_rgb[6, :height, :width] * refl_b)
+        elif mirror:
             d_out = d_out + d_rgb[3:6, :height, :width]
         douts.append(jnp.moveaxis(d_out, 0, -1))
     if mirror:
-        out = out + acc_rgb[3:6, :height, :width]
+        out = out + (refl_b if cover_b is None else cover_b * refl_b)
     res = None
     if residuals:
-        res = {"sources": (colour, q, alpha, refl if mirror else None, q_r if mirror else None),
-               "ys": run_ys, "far": far_res, "final": (acc_rgb[:3], acc_cov)}
+        res = {"sources": (colour, q, alpha, refl if mirror else None, q_r if mirror else None,
+                           cover),
+               "ys": run_ys, "far": far_res, "final": (acc_rgb[:3], acc_cov),
+               "mirror": (refl_b, cover_b) if masked else None}
     return jnp.moveaxis(out, 0, -1), douts, res
 
 
@@ -896,14 +922,14 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
 
     Returns (g_q (S, H, W), g_alpha (S, H, W) or None, g_q_r (H, W) or None).
     """
-    colour, q, alpha, refl, q_r = res["sources"]
-    mirror = refl is not None
+    colour, q, alpha, refl, q_r, cover = res["sources"]
+    mirror, masked = refl is not None, cover is not None
     height, width = ct.shape[0], ct.shape[1]
     dtype = colour.dtype
     lay = _layout(window, blades, rotation, ratio, min_radius, height, width)
     factors, kernels, runs = lay.factors, lay.kernels, lay.runs
     hp, wp = lay.hp, lay.wp
-    nc = 6 if mirror else 3
+    nc = 3 + 3 * mirror + masked
     each = range(colour.shape[0])
     ct = jnp.moveaxis(ct, -1, 0).astype(dtype)
 
@@ -916,7 +942,12 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
     def frame(x):  # the image's (..., height, width) in the (..., hp, wp) state frame
         return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((0, hp - height), (0, wp - width)))
 
-    g_rgb = frame(jnp.concatenate([safe_div(ct, den)] + ([ct] if mirror else [])))
+    if masked:  # out += cover_b * refl_b
+        refl_b, cover_b = res["mirror"]
+        g_mirror = [cover_b * ct, _channel_sum(ct * refl_b)[None]]
+    else:
+        g_mirror = [ct] if mirror else []
+    g_rgb = frame(jnp.concatenate([safe_div(ct, den)] + g_mirror))
     g_cov = frame(jnp.where(cov < 1.0, -_channel_sum(safe_div(ct * out, den)), 0.0))
 
     # the sources' cotangents, in the image frame (a run's slices reach the padded frame's
@@ -933,8 +964,8 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         s = factors[ps[0]]
         h, w = hp // s, wp // s
         o = lay.run_view(i_run)
-        colour_p, q_p, alpha_p, refl_p, q_r_p = (lay.view(x, i_run)
-                                                 for x in (colour, q, alpha, refl, q_r))
+        colour_p, q_p, alpha_p, refl_p, q_r_p, cover_p = (
+            lay.view(x, i_run) for x in (colour, q, alpha, refl, q_r, cover))
 
         def no_sources(gs, *_):  # (gs) in the switch, (gs, spectrum) in the FFT cond
             # a slice no source reaches: its fields are zero, and so are their cotangents'
@@ -987,6 +1018,8 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
             g_blurred = [transmit * g_rgb[:3], transmit * g_cov + g_next, g_hid]
             if mirror:
                 g_blurred.append(g_rgb[3:6])
+            if masked:
+                g_blurred.append(g_rgb[6])
             g_state = (g_rgb, g_cov, -jnp.where((seen > 0.0) & (seen < 1.0), g_t, 0.0),
                        g_hid + g_next)
             g_f = blur_t(g_blurred, kernel, has)
@@ -1009,6 +1042,8 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
             if mirror:
                 mirror_s = sum(_level_slopes(*_level_weights(q_r_p, q3, first, last), q3))
                 a_q_r = a_q_r + mirror_s * _channel_sum(g_f[3] * refl_p)
+            if masked:  # the footprint rides on the visible surface's (source 0's) weights
+                a_q = a_q.at[0].add(dq_w[0] * cover_p * g_f[4])
             return a_q, a_alpha, a_q_r
 
         (g_state, (a_q, a_alpha, a_q_r)), _ = jax.lax.scan(body, (g_state, acc), xs,

@@ -206,6 +206,64 @@ def test_mirror_reflection_blurred_at_its_virtual_depth():
     np.testing.assert_allclose(mirrored.sum(), rgb.sum(), rtol=1e-3)  # reflection keeps its energy
 
 
+@pytest.mark.parametrize("method", ["pyramid", "sliced", "lens"])
+def test_mirror_footprint_confines_the_blurred_reflection(method):
+    # An in-focus mirror (a square on the focal plane, black itself) shows a white virtual scene
+    # at c = -6 px that extends beyond the mirror (`Mirror.radiance` is known past the edge). A
+    # lens sees the reflection only through the mirror, whose edge is sharp: with the footprint,
+    # nothing leaks past the edge and the inside is the full reflection; unconfined, the
+    # reflection spreads 6 px past the edge and the mirror darkens inside its border.
+    n = 48
+    cam = camera(n)
+    cover = np.zeros((n, n))
+    cover[14:34, 14:34] = 1.0
+    radiance = np.ones((n, n, 3))
+    rdepth = depth_for_coc(np.full((n, n), -6.0), cam)
+    rgb = cover[..., None] * radiance
+    depth = np.full((n, n), FOCUS)
+    mirror = dofjax.Mirror(coverage=cover, radiance=radiance, depth=rdepth)
+    kw = dict(method=method, **({"samples": 64} if method == "lens" else {}))
+    out = np.asarray(defocus(rgb, depth, cam, mirror=mirror, **kw))
+    loose = np.asarray(defocus(rgb, depth, cam, reflection=rgb, reflection_depth=rdepth, **kw))
+    outside = np.ones((n, n), bool)
+    outside[12:36, 12:36] = False  # 2 px from the edge: the in-focus edge's own soft blur
+    inside = np.zeros((n, n), bool)
+    inside[16:32, 16:32] = True
+    assert np.abs(out[outside]).max() < 1e-6
+    np.testing.assert_allclose(out[inside], 1.0, atol=2e-3)
+    assert loose[outside].max() > 0.2 and loose[inside].min() < 0.8  # what the footprint fixes
+    # energy: the confined reflection carries the footprint's, not the whole virtual scene's
+    np.testing.assert_allclose(out.sum(), rgb.sum(), rtol=1e-2)
+
+
+def test_mirror_in_an_rgbd_is_used_and_checked():
+    n = 24
+    cam = camera(n)
+    rng = np.random.default_rng(3)
+    cover = np.zeros((n, n))
+    cover[6:18, 6:18] = 1.0
+    mirror = dofjax.Mirror(coverage=cover, radiance=rng.random((n, n, 3)),
+                           depth=depth_for_coc(np.full((n, n), -3.0), cam))
+    rgb = 0.3 + cover[..., None] * mirror.radiance
+    depth = np.full((n, n), 2.5)
+    rgbd = RGBD(rgb=rgb, depth=depth, reflection=cover[..., None] * mirror.radiance,
+                reflection_depth=mirror.depth, mirror=mirror)
+    np.testing.assert_allclose(defocus(rgbd, cam, method="sliced"),
+                               defocus(rgb, depth, cam, mirror=mirror, method="sliced"),
+                               atol=1e-12)
+    bad = [(dict(coverage=np.ones((n, n + 1))), "mirror must be coverage"),
+           (dict(coverage=np.full((n, n), 1.5)), r"coverage must be in \[0, 1\]"),
+           (dict(radiance=np.full((n, n, 3), np.nan)), "mirror.radiance must be finite"),
+           (dict(depth=np.zeros((n, n))), "mirror.depth must be > 0")]
+    for change, match in bad:
+        m = dofjax.Mirror(**{**dict(coverage=mirror.coverage, radiance=mirror.radiance,
+                                    depth=mirror.depth), **change})
+        with pytest.raises(ValueError, match=match):
+            defocus(rgb, depth, cam, mirror=m)
+    with pytest.raises(TypeError, match="mirror must be a dofjax Mirror"):
+        defocus(rgb, depth, cam, mirror=cover)
+
+
 def _spot(cam, c, n, **kw):
     rgb = np.zeros((n, n, 3))
     rgb[n // 2, n // 2] = 1.0

@@ -242,12 +242,14 @@ def test_float32_stays_accurate_and_finite():
 
 
 @pytest.mark.parametrize("aperture, window, extras", [
-    (0.05, 8, ()), (0.3, 24, ("layers", "mirror")), (0.3, 12, ("layers",)), (0.0, 4, ("mirror",))])
+    (0.05, 8, ()), (0.3, 24, ("layers", "mirror")), (0.3, 12, ("layers",)), (0.0, 4, ("mirror",)),
+    (0.3, 24, ("masked",)), (0.2, 12, ("layers", "masked"))])
 def test_written_out_jacobian_equals_autodiff(aperture, window, extras):
     # sliced_defocus_jacobian carries both tangents by hand (hat slopes, dq as a function of
     # q, the chain rule to focus/aperture at the end): it must equal jax.jacfwd of the plain
-    # model, with peeled layers (their gates move with the camera), a mirror layer, coarse and
-    # FFT-blurred levels (window 24), and at aperture 0
+    # model, with peeled layers (their gates move with the camera), a mirror layer (unconfined,
+    # or "masked": confined to its blurred footprint, a product), coarse and FFT-blurred levels
+    # (window 24), and at aperture 0
     n = 40
     cam = camera(width=n, height=n, aperture_radius=aperture)
     rgb, depth, kw = _random_sources(n, extras, cam, 11)
@@ -268,7 +270,8 @@ def test_written_out_jacobian_equals_autodiff(aperture, window, extras):
 
 def _random_sources(n, extras, cam, seed):
     """Random colours and depths (some at infinity, a patch on the focal plane), with
-    `extras` "layers" (two peeled layers behind) and/or "mirror" (a reflection layer)."""
+    `extras` "layers" (two peeled layers behind) and/or "mirror" (a reflection layer) or
+    "masked" (a reflection layer confined to a mirror footprint, `dofjax.Mirror`)."""
     rng = np.random.default_rng(seed)
     rgb = rng.random((n, n, 3))
     depth = rng.uniform(0.8, 8.0, (n, n))
@@ -284,12 +287,22 @@ def _random_sources(n, extras, cam, seed):
     if "mirror" in extras:
         kw.update(reflection=0.3 * rng.random((n, n, 3)),
                   reflection_depth=rng.uniform(1.0, 9.0, (n, n)))
+    if "masked" in extras:  # a mirror rectangle with soft (fractional) edges
+        cover = np.zeros((n, n))
+        cover[8:30, 12:34] = 1.0
+        cover[7, 12:34] = cover[8:30, 11] = 0.4
+        radiance = 0.3 * rng.random((n, n, 3))
+        kw.update(reflection=cover[..., None] * radiance,
+                  reflection_depth=rng.uniform(1.0, 9.0, (n, n)),
+                  mirror=dofjax.Mirror(coverage=cover, radiance=radiance,
+                                       depth=rng.uniform(1.0, 9.0, (n, n))))
     return rgb, depth, kw
 
 
 @pytest.mark.parametrize("aperture, window, extras, min_radius", [
     (0.05, 8, (), 2.0), (0.3, 24, ("layers", "mirror"), 2.0), (0.3, 12, ("layers",), 2.0),
-    (0.0, 4, ("mirror",), 2.0), (0.3, 8, ("mirror",), np.inf)])
+    (0.0, 4, ("mirror",), 2.0), (0.3, 8, ("mirror",), np.inf), (0.3, 24, ("masked",), 2.0),
+    (0.2, 12, ("layers", "masked"), 2.0), (0.3, 8, ("masked",), np.inf)])
 def test_adjoint_is_the_transpose_of_the_jacobian(aperture, window, extras, min_radius):
     # reverse mode runs sliced_defocus_adjoint (the tangent lanes transposed by hand, from the
     # value lane's residuals): for any cotangent it must give J^T ct of the written-out
