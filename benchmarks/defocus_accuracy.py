@@ -219,7 +219,8 @@ def run_scene(path, args):
             variants.append((f"{method}, single layer", dict(
                 f=lambda m=method: dofjax.defocus(
                     sharp.rgb, sharp.depth, cam, reflection=sharp.reflection,
-                    reflection_depth=sharp.reflection_depth, **method_options(m)))))
+                    reflection_depth=sharp.reflection_depth, mirror=sharp.mirror,
+                    **method_options(m)))))
             if not method.endswith("+hidden"):  # (peeled layers: no estimate to make)
                 variants.append((f"{method}, {args.layers} layers", dict(
                     f=lambda m=method: dofjax.defocus(sharp, cam, method=m))))
@@ -266,7 +267,8 @@ def guarded_variants(methods, layers, sharp, cam, margin, tag):
         out.append((f"{method}, single layer, {tag}", dict(
             f=lambda m=method: dofjax.defocus(
                 sharp.rgb, sharp.depth, cam, reflection=sharp.reflection,
-                reflection_depth=sharp.reflection_depth, margin=margin, **method_options(m)))))
+                reflection_depth=sharp.reflection_depth, mirror=sharp.mirror, margin=margin,
+                **method_options(m)))))
         if not method.endswith("+hidden"):
             out.append((f"{method}, {layers} layers, {tag}", dict(
                 f=lambda m=method: dofjax.defocus(sharp, cam, method=m, margin=margin))))

@@ -662,7 +662,7 @@ def reference(args) -> None:
         else:
             inputs = (rgbd.rgb, rgbd.depth)
             extras = {"reflection": rgbd.reflection, "reflection_depth": rgbd.reflection_depth,
-                      "layers": rgbd.layers}
+                      "layers": rgbd.layers, "mirror": rgbd.mirror}
         fit_cam = case["camera"].replace(focus_distance=row["focus_distance"],
                                          aperture_radius=row["aperture_radius"])
         at_truth = np.asarray(forward(*inputs, case["camera"], **extras)) - target

@@ -720,8 +720,8 @@ def defocus(
             zs.append(np.asarray(layers.depth)[np.asarray(layers.alpha) > 0])
         if reflection_depth is not None:
             zs.append(np.asarray(reflection_depth))
-        if mirror is not None:
-            zs.append(np.asarray(mirror.depth))
+        if mirror is not None:  # on the footprint (past it the radiance is clamped, unwarned)
+            zs.append(np.asarray(mirror.depth)[np.asarray(mirror.coverage) > 0])
         inv = np.concatenate([1.0 / np.ravel(z).astype(np.float64) for z in zs])
         ak = float(camera.aperture_radius) * float(camera.pixel_scale)
         max_abs = float(np.max(np.abs(ak * (inv - 1.0 / float(camera.focus_distance)))))

@@ -74,7 +74,7 @@ from ._camera import Camera, coc_radius
 from ._defocus import supersampling
 from ._linalg import ThinQR, unit_column_svd
 from ._numerics import box_pool as _pool, inverse_depth, safe_div
-from ._rgbd import RGBD, Layers
+from ._rgbd import RGBD, Layers, Mirror
 
 PARAMS = ("focus_distance", "aperture_radius")
 SOLVERS = ("lm", "gauss_newton", "dogleg", "bfgs")
@@ -245,15 +245,17 @@ class _Spec:
 
 
 class _Extras(eqx.Module):
-    """What an `RGBD` adds to rgb/depth for the defocus: the mirror layer and peeled layers."""
+    """What an `RGBD` adds to rgb/depth for the defocus: the mirror layer (and the mirrors'
+    footprint) and peeled layers."""
 
     reflection: Float[Array, "h w 3"] | None
     reflection_depth: Float[Array, "h w"] | None
     layers: Layers | None
+    mirror: Mirror | None = None
 
     def kwargs(self) -> dict:
         return dict(reflection=self.reflection, reflection_depth=self.reflection_depth,
-                    layers=self.layers)
+                    layers=self.layers, mirror=self.mirror)
 
 
 class _Data(eqx.Module):
@@ -1045,13 +1047,15 @@ class DefocusModel:
         check_samples("DefocusModel", self.samples, self.method)
         check_hidden("DefocusModel", self.hidden, self.method)
 
-    def __call__(self, rgb, depth, camera, reflection=None, reflection_depth=None, layers=None):
+    def __call__(self, rgb, depth, camera, reflection=None, reflection_depth=None, layers=None,
+                 mirror=None):
         from ._defocus import defocus
 
         return defocus(rgb, depth, camera, window=self.window, shape=self.shape,
                        blades=self.blades, rotation=self.rotation, ratio=self.ratio,
                        method=self.method, samples=self.samples, reflection=reflection,
-                       reflection_depth=reflection_depth, layers=layers, hidden=self.hidden)
+                       reflection_depth=reflection_depth, layers=layers, hidden=self.hidden,
+                       mirror=mirror)
 
 
 def _reach(depths: np.ndarray, k: float, u_bounds, a_hi: float) -> float:
@@ -1221,17 +1225,21 @@ def _pool_depth(depth: Array, f: int, weight: Array | None = None) -> Array:
 def _coarse_extras(extras: _Extras | None, f: int) -> _Extras | None:
     if extras is None:
         return None
-    refl = refl_z = layers = None
+    refl = refl_z = layers = mirror = None
     if extras.reflection is not None:
         refl = _pool(extras.reflection, f, 0)
         refl_z = _pool_depth(extras.reflection_depth, f)
+    if extras.mirror is not None:  # (radiance and depth extend past the footprint: plain means)
+        m = extras.mirror
+        mirror = Mirror(coverage=_pool(m.coverage, f, 0), radiance=_pool(m.radiance, f, 0),
+                        depth=_pool_depth(m.depth, f))
     if extras.layers is not None:
         lay = extras.layers
         alpha_c = _pool(lay.alpha, f, 1)
         # premultiplied colour, coverage-weighted inverse depth
         rgb_c = safe_div(_pool(lay.rgb * lay.alpha[..., None], f, 1), alpha_c[..., None])
         layers = Layers(rgb=rgb_c, depth=_pool_depth(lay.depth, f, lay.alpha), alpha=alpha_c)
-    return _Extras(reflection=refl, reflection_depth=refl_z, layers=layers)
+    return _Extras(reflection=refl, reflection_depth=refl_z, layers=layers, mirror=mirror)
 
 
 def _pool_sharp(data: _Data, f: int, weight: Array) -> tuple[Array, Array, _Extras | None]:
@@ -1310,7 +1318,7 @@ def _unpack(name: str, rgb, depth, camera, model):
         raise TypeError(f"{name}(target, rgbd, camera): pass the camera as the third argument "
                         "only")
     rgbd, camera = rgb, depth
-    if rgbd.reflection is None and rgbd.layers is None:
+    if rgbd.reflection is None and rgbd.layers is None and rgbd.mirror is None:
         return rgbd.rgb, rgbd.depth, camera, None
     if model is not None:
         raise ValueError(f"{name}: a custom model takes (rgb, depth, camera) only, so the RGBD's "
@@ -1324,15 +1332,18 @@ def _unpack(name: str, rgb, depth, camera, model):
     def arr(x):
         return None if x is None else jnp.asarray(x, dtype)
 
-    lay = rgbd.layers
+    lay, m = rgbd.layers, rgbd.mirror
     extras = _Extras(reflection=arr(rgbd.reflection), reflection_depth=arr(rgbd.reflection_depth),
                      layers=None if lay is None else Layers(rgb=arr(lay.rgb), depth=arr(lay.depth),
-                                                            alpha=arr(lay.alpha)))
+                                                            alpha=arr(lay.alpha)),
+                     mirror=None if m is None else Mirror(coverage=arr(m.coverage),
+                                                          radiance=arr(m.radiance),
+                                                          depth=arr(m.depth)))
     # (a supersampled sharp input, see fit_focus: checked against its own camera)
     camera_sharp = camera.scaled(supersampling(np.shape(rgbd.depth), camera))
     try:  # the defocus' own checks of the mirror layer and the peeled layers
         _validate_rgbd(arr(rgbd.rgb), arr(rgbd.depth), camera_sharp, extras.reflection,
-                       extras.reflection_depth, extras.layers)
+                       extras.reflection_depth, extras.layers, extras.mirror)
     except ValueError as e:
         raise ValueError(str(e).replace("defocus:", f"{name}:", 1)) from None
     return rgbd.rgb, rgbd.depth, camera, extras
@@ -1347,6 +1358,9 @@ def _depths_seen(depth_a: np.ndarray, weight: np.ndarray, extras: _Extras | None
         out.append(np.asarray(extras.layers.depth)[(a > 0) & (weight > 0)[None]])
     if extras is not None and extras.reflection_depth is not None:
         out.append(np.asarray(extras.reflection_depth)[weight > 0])
+    if extras is not None and extras.mirror is not None:  # (on the footprint, as the defocus)
+        m = extras.mirror
+        out.append(np.asarray(m.depth)[(np.asarray(m.coverage) > 0) & (weight > 0)])
     return np.concatenate(out)
 
 
