@@ -5,8 +5,12 @@ EXR layout written by `write_exr`:
   units, `+inf` for the background), all float32, ZIP compression (lossless: a round trip is
   bitwise exact);
 - extra named layers as `<name>.R, <name>.G, <name>.B` (an (H, W, 3) array), `<name>.R ... <name>.A`
-  (an (H, W, 4) array) or `<name>.Z` (an (H, W) depth-like array), e.g. `reflection.R` and
-  `reflection_depth.Z` for the mirror layer of an `RGBD`;
+  (an (H, W, 4) array) or `<name>.Z` (an (H, W) depth-like array); a layer may have both colour
+  channels and a `Z` channel (given and read back as `<name>` and `<name>.Z`);
+- for an `RGBD` (`write_rgbd`): `reflection.R/G/B` and `reflection_depth.Z` (the mirror part of the
+  colour and its virtual depth), `mirror.R/G/B` (the mirrors' radiance per unit coverage, extended
+  beyond their footprint), `mirror.A` (the mirrors' coverage) and `mirror.Z` (the virtual depth of
+  `mirror.R/G/B`), `layer<k>.R/G/B/A` and `layer<k>_depth.Z` (peeled layers);
 - metadata as header attributes named `dofjax:<name>`.
 
 Metadata encoding (OpenEXR headers hold float32, int32 and non-empty strings; OpenImageIO's Python
@@ -56,6 +60,8 @@ _PREFIX = "dofjax:"
 _JSON = "json:"
 _NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_.\-]{0,199}$")
 _LAYER_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}$")
+_LAYER_Z_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]{0,63}\.Z$")  # the Z channel of a colour layer
+_MIRROR_CHANNELS = tuple(f"mirror.{c}" for c in "RGBAZ")
 _RESERVED_LAYERS = ("rgb", "alpha", "depth")
 _INT32 = (-(2**31), 2**31 - 1)
 _SUFFIXES = {2: ("Z",), 3: ("R", "G", "B"), 4: ("R", "G", "B", "A")}
@@ -315,7 +321,8 @@ def _channels(path: str) -> tuple[Any, dict[str, np.ndarray]]:
 
 
 def _group_layers(chans: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Extra layers `<name>.<suffix>` stacked into (H, W), (H, W, 3) or (H, W, 4) arrays."""
+    """Extra layers `<name>.<suffix>` stacked into (H, W), (H, W, 3) or (H, W, 4) arrays; the `Z`
+    channel of a layer that has other channels too is its own (H, W) entry `<name>.Z`."""
     groups: dict[str, dict[str, np.ndarray]] = {}
     for full, arr in chans.items():
         if "." not in full:
@@ -324,6 +331,9 @@ def _group_layers(chans: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         groups.setdefault(layer, {})[suffix] = arr
     out = {}
     for layer, parts in groups.items():
+        if "Z" in parts and len(parts) > 1:  # a depth next to colour (e.g. mirror.R/G/B/A/Z)
+            parts = dict(parts)
+            out[f"{layer}.Z"] = parts.pop("Z")
         keys = set(parts)
         for suffixes in _SUFFIXES.values():
             if keys == set(suffixes):
@@ -397,6 +407,8 @@ def write_exr(
         extra: optional dict layer name -> (H, W) depth-like array (channel `<name>.Z`, values in
             (0, +inf]) or (H, W, 3) / (H, W, 4) finite colour (channels `<name>.R/G/B[/A]`).
             Names are identifiers (letters, digits, `_`); "rgb", "alpha" and "depth" are reserved.
+            A name `<name>.Z` (an (H, W) depth-like array) gives a colour layer `<name>` its own
+            `Z` channel (e.g. `mirror` and `mirror.Z`; `read_exr_layers` gives both back).
 
     Raises:
         ValueError: wrong extension, shapes, dtypes, non-finite colour, NaN or non-positive depth,
@@ -431,12 +443,21 @@ def write_exr(
         _check_depth(path, "depth", depth)
         planes.append(("Z", depth))
     for name, value in (extra or {}).items():
-        if not isinstance(name, str) or not _LAYER_RE.fullmatch(name) or name in _RESERVED_LAYERS:
+        z_of = isinstance(name, str) and _LAYER_Z_RE.fullmatch(name)
+        plain = isinstance(name, str) and _LAYER_RE.fullmatch(name)
+        if not (plain or z_of) or name.split(".")[0] in _RESERVED_LAYERS:
             raise ValueError(
                 f"{path}: extra layer name {name!r} is invalid: use letters, digits and '_' "
-                f"(at most 64 characters), not one of {_RESERVED_LAYERS}"
+                f"(at most 64 characters), not one of {_RESERVED_LAYERS}, optionally followed by "
+                "'.Z' for the depth channel of a colour layer"
             )
         arr = _as_float_array(path, f"extra[{name!r}]", value)
+        if z_of:
+            _check_image_shape(path, f"extra[{name!r}]", arr, None)
+            same_size(f"extra[{name!r}]", arr)
+            _check_depth(path, f"extra[{name!r}]", arr)
+            planes.append((name, arr))
+            continue
         if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (3, 4)):
             raise ValueError(
                 f"{path}: extra[{name!r}] must have shape (H, W), (H, W, 3) or (H, W, 4), "
@@ -450,6 +471,13 @@ def write_exr(
             _check_colour(path, f"extra[{name!r}]", arr)
             suffixes = _SUFFIXES[arr.shape[2]]
             planes.extend((f"{name}.{s}", arr[:, :, i]) for i, s in enumerate(suffixes))
+    names = [n for n, _ in planes]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ValueError(
+            f"{path}: extra layers give the channel(s) {', '.join(repeated)} twice (a layer `x` "
+            "of shape (H, W) is channel x.Z, like the layer `x.Z`)"
+        )
     attributes = _encode_metadata(path, metadata)
 
     oiio = _oiio()
@@ -500,6 +528,8 @@ def read_exr_layers(path: str | os.PathLike) -> dict[str, np.ndarray]:
     Keys: "rgb" (H, W, 3), "alpha" (H, W) if there is an `A` channel, "depth" (H, W) if there is a
     `Z` channel, and each extra layer `<name>.*` under `<name>`: (H, W) for `<name>.Z`, (H, W, 3)
     for R, G, B, (H, W, 4) for R, G, B, A (other channel sets: stacked in sorted suffix order).
+    A layer with a `Z` channel and other channels (e.g. `mirror.R/G/B/A/Z`) gives two entries:
+    `<name>` without the `Z` channel and `<name>.Z` (H, W).
     Metadata: `read_exr` or `read_exr_metadata`.
 
     Raises:
@@ -539,10 +569,11 @@ def read_exr_metadata(path: str | os.PathLike) -> dict[str, Any]:
 def write_rgbd(
     path: str | os.PathLike, rgbd, metadata: Mapping[str, Any] | None = None
 ) -> None:
-    """Write an `RGBD` (sharp render) to EXR: R, G, B, Z, the mirror layer and peeled layers.
+    """Write an `RGBD` (sharp render) to EXR: R, G, B, Z, the mirror layers and peeled layers.
 
     Layout: `rgbd.rgb` -> R, G, B; `rgbd.depth` -> Z; `rgbd.reflection` -> `reflection.R/G/B`;
-    `rgbd.reflection_depth` -> `reflection_depth.Z`; peeled layer k of `rgbd.layers` ->
+    `rgbd.reflection_depth` -> `reflection_depth.Z`; `rgbd.mirror` -> `mirror.R/G/B` (radiance),
+    `mirror.A` (coverage) and `mirror.Z` (depth); peeled layer k of `rgbd.layers` ->
     `layer<k>.R/G/B/A` (colour and coverage) and `layer<k>_depth.Z`.
     """
     extra: dict[str, Any] = {}
@@ -550,6 +581,12 @@ def write_rgbd(
         extra["reflection"] = rgbd.reflection
     if rgbd.reflection_depth is not None:
         extra["reflection_depth"] = rgbd.reflection_depth
+    if rgbd.mirror is not None:
+        mirror = rgbd.mirror
+        extra["mirror"] = np.concatenate(
+            [np.asarray(mirror.radiance), np.asarray(mirror.coverage)[..., None]], axis=-1
+        )
+        extra["mirror.Z"] = mirror.depth
     if rgbd.layers is not None:
         rgb_k = np.asarray(rgbd.layers.rgb)
         alpha_k = np.asarray(rgbd.layers.alpha)
@@ -564,11 +601,12 @@ def read_rgbd(path: str | os.PathLike):
     """Read an EXR written by `write_rgbd` (or any EXR with R, G, B and Z) as `(RGBD, metadata)`.
 
     The arrays are float32 JAX arrays. Raises ValueError if the file has no `Z` channel, or has
-    only one of `reflection` / `reflection_depth`, or an incomplete set of peeled layers.
+    only one of `reflection` / `reflection_depth`, only some of the channels `mirror.R/G/B/A/Z`,
+    or an incomplete set of peeled layers.
     """
     import jax.numpy as jnp
 
-    from ._rgbd import RGBD, Layers
+    from ._rgbd import RGBD, Layers, Mirror
 
     path = _path_str(path)
     spec, layers = _read_layers(path)
@@ -579,6 +617,21 @@ def read_rgbd(path: str | os.PathLike):
         raise ValueError(f"{path}: has only one of the layers 'reflection' and 'reflection_depth'")
     if has_r and (layers["reflection"].ndim != 3 or layers["reflection"].shape[2] != 3):
         raise ValueError(f"{path}: layer 'reflection' must have channels R, G, B")
+    present = [c for c in _MIRROR_CHANNELS if c in spec.channelnames]
+    if present and len(present) < len(_MIRROR_CHANNELS):
+        missing = [c for c in _MIRROR_CHANNELS if c not in present]
+        raise ValueError(
+            f"{path}: has only some of the mirror channels: {', '.join(missing)} missing (an "
+            f"RGBD's mirror needs all of {', '.join(_MIRROR_CHANNELS)})"
+        )
+    mirror = None
+    if present:
+        rgba = layers["mirror"]
+        mirror = Mirror(
+            coverage=jnp.asarray(rgba[..., 3]),
+            radiance=jnp.asarray(rgba[..., :3]),
+            depth=jnp.asarray(layers["mirror.Z"]),
+        )
     peeled = None
     k = 0
     while f"layer{k}" in layers or f"layer{k}_depth" in layers:
@@ -605,6 +658,7 @@ def read_rgbd(path: str | os.PathLike):
         reflection=jnp.asarray(layers["reflection"]) if has_r else None,
         reflection_depth=jnp.asarray(layers["reflection_depth"]) if has_r else None,
         layers=peeled,
+        mirror=mirror,
     )
     return rgbd, _decode_metadata(spec)
 

@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 
 import dofjax
 from dofjax._io import srgb_decode, srgb_encode
-from dofjax._rgbd import RGBD, Layers
+from dofjax._rgbd import RGBD, Layers, Mirror
 
 H, W = 12, 17
 
@@ -211,6 +211,103 @@ def test_rgbd_round_trip_with_mirror_and_peeled_layers(tmp_path):
     dofjax.write_rgbd(tmp_path / "b.exr", RGBD(rgb=rgb, depth=depth))
     plain, _ = dofjax.read_rgbd(tmp_path / "b.exr")
     assert plain.reflection is None and plain.reflection_depth is None and plain.layers is None
+
+
+def _mirror(seed):
+    rng = np.random.default_rng(seed)
+    coverage = np.where(rng.random((H, W)) < 0.5, 0.0, rng.random((H, W))).astype(np.float32)
+    coverage[0, :4] = [0.0, 1.0, 0.25, 0.75]
+    radiance = (rng.random((H, W, 3)) * 10.0 ** rng.integers(-5, 2, (H, W, 3))).astype(np.float32)
+    depth = (1.0 + 30.0 * rng.random((H, W))).astype(np.float32)
+    depth[rng.random((H, W)) < 0.3] = np.inf  # reflected ray escapes
+    return Mirror(coverage=jnp.asarray(coverage), radiance=jnp.asarray(radiance),
+                  depth=jnp.asarray(depth))
+
+
+def test_rgbd_round_trip_with_mirror_footprint_and_extension(tmp_path):
+    rgb, depth = _data(10)
+    mirror = _mirror(11)
+    rgbd = RGBD(
+        rgb=jnp.asarray(rgb),
+        depth=jnp.asarray(depth),
+        reflection=jnp.asarray(mirror.coverage[..., None] * mirror.radiance),
+        reflection_depth=jnp.asarray(depth + 3.0),
+        mirror=mirror,
+    )
+    path = tmp_path / "m.exr"
+    dofjax.write_rgbd(path, rgbd, {"spp": 1})
+    spec, _, _ = _oiio_read(path)
+    assert set(spec.channelnames) == {
+        "R", "G", "B", "Z", "reflection.R", "reflection.G", "reflection.B", "reflection_depth.Z",
+        "mirror.R", "mirror.G", "mirror.B", "mirror.A", "mirror.Z",
+    }  # fmt: skip
+    back, meta = dofjax.read_rgbd(path)
+    assert meta == {"spp": 1} and back.layers is None
+    for name in ("rgb", "depth", "reflection", "reflection_depth"):
+        assert _bitwise_equal(getattr(back, name), getattr(rgbd, name)), name
+    assert isinstance(back.mirror, Mirror)
+    for name in ("coverage", "radiance", "depth"):
+        assert _bitwise_equal(getattr(back.mirror, name), getattr(mirror, name)), name
+    assert np.isposinf(back.mirror.depth).sum() > 10
+    # read_exr_layers: the mirror's colour and coverage as one RGBA layer, its depth on its own
+    layers = dofjax.read_exr_layers(path)
+    assert {"mirror", "mirror.Z"} <= set(layers)
+    assert layers["mirror"].shape == (H, W, 4)
+    assert _bitwise_equal(layers["mirror"][..., 3], mirror.coverage)
+    assert _bitwise_equal(layers["mirror.Z"], mirror.depth)
+    # ... which write_exr takes back as they are
+    again = tmp_path / "again.exr"
+    dofjax.write_exr(again, layers["rgb"], layers["depth"],
+                     extra={k: layers[k] for k in ("mirror", "mirror.Z")})
+    assert _bitwise_equal(dofjax.read_rgbd(again)[0].mirror.radiance, mirror.radiance)
+    # without a mirror it stays None
+    dofjax.write_rgbd(tmp_path / "b.exr", RGBD(rgb=rgb, depth=depth))
+    assert dofjax.read_rgbd(tmp_path / "b.exr")[0].mirror is None
+
+
+def test_read_rgbd_refuses_a_partial_mirror(tmp_path):
+    rgb, depth = _data(12)
+    mirror = _mirror(13)
+    rgba = np.concatenate([np.asarray(mirror.radiance), np.asarray(mirror.coverage)[..., None]], -1)
+    # colour and coverage without the depth
+    dofjax.write_exr(tmp_path / "a.exr", rgb, depth, extra={"mirror": rgba})
+    with pytest.raises(ValueError, match=r"a\.exr: has only some of the mirror channels: "
+                                         r"mirror\.Z missing"):
+        dofjax.read_rgbd(tmp_path / "a.exr")
+    # the depth alone
+    dofjax.write_exr(tmp_path / "b.exr", rgb, depth, extra={"mirror": np.asarray(mirror.depth)})
+    with pytest.raises(ValueError, match=r"b\.exr: .*mirror\.R, mirror\.G, mirror\.B, "
+                                         r"mirror\.A missing"):
+        dofjax.read_rgbd(tmp_path / "b.exr")
+    # colour and depth without the coverage, written by another tool
+    path = str(tmp_path / "c.exr")
+    names = ("R", "G", "B", "Z", "mirror.R", "mirror.G", "mirror.B", "mirror.Z")
+    spec = oiio.ImageSpec(W, H, len(names), oiio.FLOAT)
+    spec.channelnames = names
+    px = np.concatenate([rgb, depth[..., None], np.asarray(mirror.radiance),
+                         np.asarray(mirror.depth)[..., None]], -1)
+    out = oiio.ImageOutput.create(path)
+    out.open(path, spec)
+    out.write_image(np.ascontiguousarray(px, np.float32))
+    out.close()
+    assert set(dofjax.read_exr_layers(path)) == {"rgb", "depth", "mirror", "mirror.Z"}
+    with pytest.raises(ValueError, match=r"c\.exr: has only some of the mirror channels: "
+                                         r"mirror\.A missing"):
+        dofjax.read_rgbd(path)
+
+
+def test_write_exr_layer_depth_channel_errors(tmp_path):
+    rgb, depth = _data(14)
+    p = tmp_path / "a.exr"
+    with pytest.raises(ValueError, match=r"channel\(s\) x\.Z twice"):
+        dofjax.write_exr(p, rgb, depth, extra={"x": depth, "x.Z": depth})
+    with pytest.raises(ValueError, match=r"extra\['x\.Z'\] must have shape \(H, W\)"):
+        dofjax.write_exr(p, rgb, depth, extra={"x.Z": rgb})
+    with pytest.raises(ValueError, match=r"extra\['x\.Z'\] must be a z-depth"):
+        dofjax.write_exr(p, rgb, depth, extra={"x.Z": -depth})
+    with pytest.raises(ValueError, match=r"extra layer name 'x\.R' is invalid"):
+        dofjax.write_exr(p, rgb, depth, extra={"x.R": depth})
+    assert not p.exists()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -294,6 +294,220 @@ def test_two_bounces_between_parallel_mirrors():
     assert float(out.reflection_t[0]) == pytest.approx(22.0, rel=1e-9)
 
 
+# ------------------------------------------------------------------------------------- RGBD.mirror
+def tilted_mirror_scene(size, offset=0.0, bounces=2):
+    """A 70 % mirror quad of side `size` on the plane through (0.1, 0.1, 10) turned 15 degrees
+    about y (centred `offset` along the plane's u axis), reflecting an emissive card and a lit
+    sphere that stand outside the view. Light and objects are in front of the plane, so a larger
+    quad on the same plane changes nothing but the mirror's extent."""
+    a = np.radians(15.0)
+    u, v = np.array([np.cos(a), 0.0, np.sin(a)]), np.array([0.0, 1.0, 0.0])
+    centre = np.array([0.1, 0.1, 10.0]) + offset * u
+    return Scene(
+        materials=materials(
+            3,
+            ambient=[[0.2] * 3, [0.0] * 3, [0.1] * 3],
+            emission=[[0.0] * 3, [1.0, 0.5, 0.25], [0.0] * 3],
+            diffuse=[[0.0] * 3, [0.0] * 3, [0.6, 0.5, 0.4]],
+            specular=[[0.0] * 3, [0.0] * 3, [0.3] * 3],
+            shininess=20.0,
+            mirror=[0.7, 0.0, 0.0],
+        ),
+        quads=Quads(
+            corner=[centre - size / 2 * (u + v), [2.6, -0.9, 4.0]],
+            edge_u=[size * u, [1.5, 0, 0]],
+            edge_v=[size * v, [0, 1.5, 0]],
+            material=[0, 1],
+        ),
+        spheres=Spheres(center=[[2.4, 0.6, 5.5]], radius=[0.7], material=[2]),
+        point_lights=PointLights(position=[[0.0, 2.0, 8.0]], intensity=[[20.0] * 3]),
+        background=[0.05, 0.1, 0.15],
+        max_bounces=bounces,
+    )
+
+
+def test_mirror_footprint_is_the_reflection_per_unit_coverage():
+    scene = mirror_scene()
+    cam = Camera(32, 32, fov=20.0, focus_distance=10.0, aperture_radius=0.0)
+    out = dofjax.render(scene, cam)
+    m = out.mirror
+    assert m.coverage.shape == (32, 32) and m.radiance.shape == (32, 32, 3)
+    assert m.depth.shape == (32, 32) and m.coverage.dtype == jnp.float64
+    cov = np.asarray(m.coverage)
+    assert set(np.unique(cov)) == {0.0, 1.0}  # spp 1: the pixel centre's 0 / 1
+    on = cov == 1.0
+    card = np.asarray(out.depth) < 5.0  # the card (not a mirror) hides the mirror there
+    np.testing.assert_array_equal(on, ~card)
+    assert card.sum() > 10
+    np.testing.assert_array_equal(np.asarray(m.radiance)[on], np.asarray(out.reflection)[on])
+    np.testing.assert_array_equal(np.asarray(m.depth)[on], np.asarray(out.reflection_depth)[on])
+    np.testing.assert_allclose(cov[..., None] * np.asarray(m.radiance), out.reflection, rtol=1e-15)
+    # peeling does not change it
+    peeled = dofjax.render(scene, cam, layers=2).mirror
+    for a, b in zip(jax.tree.leaves(peeled), jax.tree.leaves(m), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-13)
+    # spp 4: coverage is averaged over the strata like rgb, fractional on the card's edges
+    for layers in (None, 2):
+        four = dofjax.render(scene, cam, spp=4, layers=layers)
+        cov4 = np.asarray(four.mirror.coverage)
+        assert np.all((cov4 >= 0) & (cov4 <= 1))
+        assert np.any((cov4 > 0) & (cov4 < 1))
+        np.testing.assert_allclose(
+            cov4[..., None] * np.asarray(four.mirror.radiance), four.reflection, rtol=1e-13,
+            atol=1e-15,
+        )
+        centre = np.isfinite(np.asarray(four.reflection_depth))
+        np.testing.assert_array_equal(
+            np.asarray(four.mirror.depth)[centre], np.asarray(four.reflection_depth)[centre]
+        )
+    # no mirrors, no Mirror
+    assert dofjax.render(phong_scene(), cam).mirror is None
+    assert dofjax.render(mirror_scene(bounces=0), cam, spp=4).mirror is None
+
+
+def test_mirror_extension_is_what_a_larger_mirror_on_the_same_plane_shows():
+    """Off a small tilted mirror, `mirror.radiance` / `mirror.depth` are the `reflection` /
+    `reflection_depth` of the same scene with the mirror quad grown to fill the view."""
+    cam = Camera(32, 32, fov=20.0, focus_distance=10.0, aperture_radius=0.0)
+    small = dofjax.render(tilted_mirror_scene(0.8, offset=-1.0), cam)
+    big = dofjax.render(tilted_mirror_scene(12.0), cam)
+    cs, cb = np.asarray(small.mirror.coverage), np.asarray(big.mirror.coverage)
+    assert cs.sum() > 30
+    beyond = (cs == 0) & (cb == 1)
+    assert beyond.sum() > 800
+    # On a plane, every mirror pixel gives the same plane: the extension is exact wherever the
+    # big mirror is hit (no edge band needed at spp 1), up to rounding of the crossing point.
+    got, want = np.asarray(small.mirror.radiance)[beyond], np.asarray(big.reflection)[beyond]
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-14)
+    assert len(np.unique(want.round(6), axis=0)) > 20  # card, lit sphere and background
+    depth, want_depth = np.asarray(small.mirror.depth), np.asarray(big.reflection_depth)
+    np.testing.assert_array_equal(np.isinf(depth[beyond]), np.isinf(want_depth[beyond]))
+    seen = beyond & np.isfinite(want_depth)
+    assert seen.sum() > 50
+    np.testing.assert_allclose(depth[seen], want_depth[seen], rtol=1e-12)
+    for x in jax.tree.leaves(small.mirror):
+        assert not np.any(np.isnan(np.asarray(x)))
+    # spp 4: depth stays the pixel centre's, so off the small mirror it is still the big one's
+    small4 = dofjax.render(tilted_mirror_scene(0.8, offset=-1.0), cam, spp=4)
+    big4 = dofjax.render(tilted_mirror_scene(12.0), cam, spp=4)
+    off = (np.asarray(small4.mirror.coverage) == 0) & np.isfinite(np.asarray(big4.reflection_depth))
+    assert off.sum() > 50
+    np.testing.assert_allclose(
+        np.asarray(small4.mirror.depth)[off], np.asarray(big4.reflection_depth)[off], rtol=1e-12
+    )
+
+
+def test_mirror_without_a_mirror_in_view_is_zero_and_finite():
+    # max_bounces > 0 but no mirror material: coverage 0, radiance 0, depth +inf everywhere.
+    scene = Scene(
+        materials=materials(2, ambient=[0.2] * 3, diffuse=[0.5] * 3),
+        spheres=Spheres(center=[[0.0, 0.0, 5.0]], radius=[1.0], material=[0]),
+        planes=plane_z(8.0, material=1),
+        point_lights=PointLights(position=[[1.0, 2.0, 0.0]], intensity=[[5.0] * 3]),
+        max_bounces=2,
+    )
+    cam = Camera(24, 24, fov=40.0, focus_distance=5.0, aperture_radius=0.0)
+    for spp in (1, 4):
+        m = dofjax.render(scene, cam, spp=spp).mirror
+        np.testing.assert_array_equal(m.coverage, 0.0)
+        np.testing.assert_array_equal(m.radiance, 0.0)
+        assert np.all(np.isposinf(m.depth))
+
+
+def test_mirror_floor_extension_stops_at_the_horizon_float32():
+    """A small mirror tile on the floor y = -1: below the horizon the floor plane is crossed in
+    front of the camera and shows the (weighted) sky; above it the plane is never crossed
+    (radiance 0, depth +inf). float32, no NaN."""
+    sky = np.array([0.3, 0.5, 0.9])
+    scene = Scene(
+        materials=materials(ambient=[0.1] * 3, mirror=0.8),
+        quads=Quads(
+            corner=[[-1.0, -1.0, 3.0]], edge_u=[[2.0, 0, 0]], edge_v=[[0, 0, 2.0]], material=[0]
+        ),
+        background=sky,
+        max_bounces=1,
+    )
+    cam = Camera(24, 24, fov=60.0, focus_distance=5.0, aperture_radius=0.0)
+    for scene_, cam_, rtol in ((scene, cam, 1e-12), (to_float32(scene), to_float32(cam), 1e-6)):
+        out = dofjax.render(scene_, cam_)
+        m = out.mirror
+        for x in jax.tree.leaves(m):
+            assert x.dtype == cam_.fov.dtype and not np.any(np.isnan(np.asarray(x)))
+        assert np.all(np.isfinite(np.asarray(m.radiance)))
+        cov = np.asarray(m.coverage)
+        assert cov.sum() > 15
+        down = np.asarray(cam_.pixel_directions())[..., 1] < 0
+        above = ~down
+        np.testing.assert_array_equal(np.asarray(m.radiance)[above], 0.0)
+        assert np.all(np.isposinf(np.asarray(m.depth)[above]))
+        below = down & (cov == 0)
+        assert below.sum() > 100
+        np.testing.assert_allclose(np.asarray(m.radiance)[below], rows(0.8 * sky, below),
+                                   rtol=rtol)
+        assert np.all(np.isposinf(np.asarray(m.depth)[below]))  # the sky is at infinity
+
+
+def test_mirror_extension_takes_the_nearest_mirrors_plane_and_weight():
+    """Two mirror tiles on different planes (one turned 15 degrees) with weights 0.7 and 0.4 and
+    only the sky behind the camera: off the tiles the extension shows weight * sky of the tile
+    nearest in pixel distance, at infinite depth."""
+    sky = np.array([0.3, 0.5, 0.9])
+    a = np.radians(15.0)
+    u, v = np.array([np.cos(a), 0.0, np.sin(a)]), np.array([0.0, 1.0, 0.0])
+    scene = Scene(
+        materials=materials(2, ambient=[0.1] * 3, mirror=[0.7, 0.4]),
+        quads=Quads(
+            corner=[np.array([0.9, -0.3, 10.0]) - 0.3 * (u + v), [-1.2, -0.3, 10.0]],
+            edge_u=[0.6 * u, [0.6, 0, 0]],
+            edge_v=[0.6 * v, [0, 0.6, 0]],
+            material=[0, 1],
+        ),
+        background=sky,
+        max_bounces=1,
+    )
+    cam = Camera(32, 24, fov=20.0, focus_distance=10.0, aperture_radius=0.0)
+    out = dofjax.render(scene, cam)
+    m = out.mirror
+    weight = np.asarray(out.reflection)[..., 0] / sky[0]  # 0.7, 0.4, or 0 off the tiles
+    tile_a, tile_b = np.isclose(weight, 0.7), np.isclose(weight, 0.4)
+    assert tile_a.sum() > 10 and tile_b.sum() > 10
+    np.testing.assert_array_equal(np.asarray(m.coverage), tile_a | tile_b)
+    yy, xx = np.mgrid[:24, :32]
+
+    def distance(tile):
+        ys, xs = np.nonzero(tile)
+        return np.sqrt(((yy[..., None] - ys) ** 2 + (xx[..., None] - xs) ** 2).min(-1))
+
+    d_a, d_b = distance(tile_a), distance(tile_b)
+    for nearer, w in ((d_a < d_b - 1.5, 0.7), (d_b < d_a - 1.5, 0.4)):
+        assert nearer.sum() > 100
+        np.testing.assert_allclose(np.asarray(m.radiance)[nearer], rows(w * sky, nearer),
+                                   rtol=1e-12)
+    assert np.all(np.isposinf(np.asarray(m.depth)))
+
+
+def test_nearest_seed_jump_flooding():
+    rng = np.random.default_rng(3)
+    wrong = total = 0
+    for h, w, p in ((1, 1, 1.0), (1, 9, 0.2), (17, 5, 0.05), (24, 31, 0.01), (32, 32, 0.002),
+                    (40, 23, 0.3), (13, 13, 0.0)):
+        seed = rng.random((h, w)) < p
+        got = np.asarray(_raycast._nearest_seed(jnp.asarray(seed)))
+        if not seed.any():
+            np.testing.assert_array_equal(got, -1)
+            continue
+        assert np.all(seed.reshape(-1)[got]), "every pixel points at a seed"
+        ys, xs = np.nonzero(seed)
+        yy, xx = np.mgrid[:h, :w]
+        best = np.sqrt(((yy[..., None] - ys) ** 2 + (xx[..., None] - xs) ** 2).min(-1))
+        dist = np.hypot(got // w - yy, got % w - xx)
+        # jump flooding is exact but for rare sub-pixel misses
+        assert np.all(dist <= best + 1.0)
+        wrong += int(np.sum(dist > best + 1e-9))
+        total += h * w
+    assert wrong <= 0.005 * total
+
+
 # ------------------------------------------------------------------------------------- layers
 def test_layers_peel_quad_sphere_and_plane():
     """A card, a sphere and an opaque plane: layer 1 behind the sphere is the plane (its back wall
