@@ -7,7 +7,8 @@
 
 `render` takes the camera from the scene file's "camera" section (`dofjax.load_camera`); every flag
 overrides one field of it. It writes RGB + Z (+ the mirror layer `reflection.*`,
-`reflection_depth.Z` and peeled layers `layer<k>.*` when present, see `dofjax.write_rgbd`) with the
+`reflection_depth.Z`, the mirrors' footprint `mirror.*` and peeled layers `layer<k>.*` when
+present, see `dofjax.write_rgbd`) with the
 camera and render parameters as `dofjax:<name>` metadata, and optionally an sRGB PNG preview.
 `info` prints an EXR's resolution, channels, depth and colour ranges and its dofjax metadata.
 
@@ -184,6 +185,8 @@ def _run_render(args: argparse.Namespace) -> int:
     extras = []
     if rgbd.reflection is not None:
         extras.append("reflection")
+    if rgbd.mirror is not None:
+        extras.append("mirror footprint")
     if rgbd.layers is not None:
         extras.append(f"{rgbd.layers.depth.shape[0]} layers")
     print(

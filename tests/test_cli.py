@@ -93,7 +93,8 @@ def test_render_then_info(scene_file, tmp_path, capsys):
     assert main(["info", str(out)]) == 0
     text = capsys.readouterr().out
     assert "resolution: 32 x 24" in text
-    assert "channels (18): R G B Z" in text and "reflection_depth.Z" in text
+    assert "channels (23): R G B Z" in text and "reflection_depth.Z" in text
+    assert "mirror.A" in text and "mirror.Z" in text
     finite = depth[np.isfinite(depth)]
     background = np.isposinf(depth).mean()
     assert f"depth: finite [{finite.min():.6g}, {finite.max():.6g}], " in text
