@@ -26,14 +26,16 @@ Algorithm (a layered pyramid):
    explicit hidden-background layer (pull-push fill of the locally farthest pixels, placed behind
    pixels that are > 1-2 px of CoC nearer than the farthest surface within the window).
 6. Mirrors: the reflected radiance is a separate, additive source blurred at its own virtual depth;
-   the mirror surface keeps the rest of the colour at the mirror's depth. With the mirror's
-   footprint (`RGBD.mirror`, a `Mirror`), the blurred reflection is confined to the blurred
-   footprint: reflection = C * S, C the footprint (coverage) scattered at the mirror's own depth
-   without occlusion and S the radiance (known a little beyond the footprint) scattered at its
-   virtual depth. A lens sees the reflection only through the mirror, so an in-focus mirror edge
-   stays sharp however blurred the reflection (the unconfined scatter leaked it up to the
-   reflection's CoC past the edge and darkened the mirror inside it, where the virtual scene
-   beyond the footprint was missing).
+   the mirror surface keeps the rest of the colour at the mirror's depth. With the mirrors'
+   footprint (`RGBD.mirror`, a `Mirror`), the reflection is C * V instead: V the virtual scene
+   (the mirror's radiance, known a little beyond the footprint, at its virtual depth) defocused
+   as its own single-layer RGB-D by the same method (its occlusion: a nearer reflected object
+   hides the reflected sky behind it), C the footprint scattered at the visible surface's depth
+   without occlusion (a fourth channel of the surfaces' pass). A lens sees the virtual scene
+   only through the mirror, so an in-focus mirror edge stays sharp however blurred the
+   reflection. (Unconfined, the scatter leaked the reflection up to its CoC past the edge,
+   darkened the mirror inside it where the virtual scene beyond the footprint was missing, and
+   spread the reflected sky over the reflected objects in front of it: benchmarks/README.md.)
 
 All of it is smooth jnp maths on fixed shapes, so forward- and reverse-mode derivatives w.r.t.
 `focus_distance`, `aperture_radius` and the colours cost a small multiple of the forward pass.
@@ -54,6 +56,7 @@ Entry points:
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import warnings
@@ -344,9 +347,10 @@ def _core(rgb, inv, alpha, refl, refl_inv, cover, focus_distance, aperture_radiu
     """Defocus of sources rgb (L, H, W, 3), inverse depth inv (L, H, W), coverage alpha (L, H, W).
 
     refl/refl_inv: (H, W, 3)/(H, W) mirror radiance and its inverse virtual depth (or dummies when
-    config.mirror is False); cover: (H, W) mirror footprint (config.masked; else a dummy), which
-    confines the blurred reflection (module docstring, step 6).
-    Returns (image (H, W, 3), max |c| over all sources).
+    config.mirror is False); cover: (H, W) mirror footprint (config.masked; else a dummy): then
+    the image has a fourth channel, the footprint scattered at the visible surface's depth
+    without occlusion (module docstring, step 6).
+    Returns (image (H, W, 3 or 4), max |c| over all sources).
     """
     plan = make_plan(config.window, config.blades, config.rotation, config.ratio)
     table = moment_table(config.blades, config.rotation, config.ratio)
@@ -430,10 +434,10 @@ def _core(rgb, inv, alpha, refl, refl_inv, cover, focus_distance, aperture_radiu
         a_hist.append(a)
         af_hist.append(af)
     out = num / jnp.maximum(den, 1e-6)[None]
-    if config.masked:
-        refl_sum = cover_sum[None] * refl_sum
     if config.mirror:
         out = out + refl_sum
+    if config.masked:
+        out = jnp.concatenate([out, cover_sum[None]])
     return jnp.moveaxis(out, 0, -1), max_abs
 
 
@@ -473,61 +477,88 @@ def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blade
                            hidden=hidden, mirror=mirror)
         return out, None
     if method == "sliced":
-        layers = _with_hidden(rgb, depth, reflection, layers, window, method, hidden)
-        def at(fn):
-            """fn (`sliced_defocus` or `sliced_defocus_jacobian`) at focus, aperture = y."""
-            def call(y, a):
-                rgb, depth, camera, reflection, reflection_depth, layers, mirror = a
-                cam = camera.replace(focus_distance=y[0], aperture_radius=y[1])
-                return fn(rgb, depth, cam, window=window, blades=blades, rotation=rotation,
-                          ratio=ratio, reflection=reflection, reflection_depth=reflection_depth,
-                          layers=layers, mirror=mirror)
-            return call
+        out = _sliced(rgb, depth, camera, reflection, reflection_depth, layers, window, blades,
+                      rotation, ratio, hidden, mirror)
+        if mirror is None:
+            return out, None
+        # the virtual scene: its own single-layer RGB-D
+        virtual = _sliced(mirror.radiance, mirror.depth, camera, None, None, None, window,
+                          blades, rotation, ratio, hidden, None)
+        return _confine(out, virtual), None
+    return _pyramid(rgb, depth, camera, reflection, reflection_depth, layers, window, blades,
+                    rotation, ratio, hidden, mirror)
 
-        y = jnp.stack(jnp.broadcast_arrays(jnp.asarray(camera.focus_distance),
-                                           jnp.asarray(camera.aperture_radius)))
-        # derivatives w.r.t. (focus, aperture) through J = d image / d(focus, aperture), built by
-        # one written-out forward-mode pass (`sliced_defocus_jacobian`, ~3x a forward pass): a
-        # reverse-mode gradient then costs that pass, not a transpose of the shifted-sum blurs
-        # (~9x their forward cost on the CPU); derivatives w.r.t. the images and the camera's
-        # other fields by plain autodiff. The model reads focus and aperture from y only: their
-        # copies in args carry no tangent (else the rule would add a whole second forward-mode
-        # pass for a zero contribution)
-        # Reverse mode transposes `J @ dy` by the model's own adjoint (`sliced_defocus_adjoint`,
-        # ~1x a forward pass) from the value lane's residuals, so a gradient costs the value
-        # pass with its residuals plus the adjoint (~3.0x a forward pass, median of nine runs at
-        # 512 x 512) instead of J plus the contraction (~3.2x): XLA drops whichever of J and
-        # the residuals the mode does not use.
-        rest = camera.replace(focus_distance=jax.lax.stop_gradient(camera.focus_distance),
-                              aperture_radius=jax.lax.stop_gradient(camera.aperture_radius))
-        # (inside a forward-only Jacobian, such as the fitter's, no residuals are needed)
-        adjoint = None if tracing_forward_only() else functools.partial(
-            sliced_defocus_adjoint, window=window, blades=blades, rotation=rotation, ratio=ratio)
-        out = dense_jacobian(at(sliced_defocus), y,
-                             (rgb, depth, rest, reflection, reflection_depth, layers, mirror),
-                             at(functools.partial(sliced_defocus_jacobian,
-                                                  residuals=adjoint is not None)),
-                             adjoint=adjoint)
-        return out, None
+
+def _sliced(rgb, depth, camera, reflection, reflection_depth, layers, window, blades, rotation,
+            ratio, hidden, mirror):
+    """The sliced method's image (with a footprint channel when `mirror` is given), its
+    (focus, aperture) derivatives by its written-out Jacobian and adjoint."""
+    layers = _with_hidden(rgb, depth, reflection, layers, window, "sliced", hidden)
+
+    def at(fn):
+        """fn (`sliced_defocus` or `sliced_defocus_jacobian`) at focus, aperture = y."""
+        def call(y, a):
+            rgb, depth, camera, reflection, reflection_depth, layers, mirror = a
+            cam = camera.replace(focus_distance=y[0], aperture_radius=y[1])
+            return fn(rgb, depth, cam, window=window, blades=blades, rotation=rotation,
+                      ratio=ratio, reflection=reflection, reflection_depth=reflection_depth,
+                      layers=layers, mirror=mirror)
+        return call
+
+    y = jnp.stack(jnp.broadcast_arrays(jnp.asarray(camera.focus_distance),
+                                       jnp.asarray(camera.aperture_radius)))
+    # derivatives w.r.t. (focus, aperture) through J = d image / d(focus, aperture), built by
+    # one written-out forward-mode pass (`sliced_defocus_jacobian`, ~3x a forward pass): a
+    # reverse-mode gradient then costs that pass, not a transpose of the shifted-sum blurs
+    # (~9x their forward cost on the CPU); derivatives w.r.t. the images and the camera's
+    # other fields by plain autodiff. The model reads focus and aperture from y only: their
+    # copies in args carry no tangent (else the rule would add a whole second forward-mode
+    # pass for a zero contribution)
+    # Reverse mode transposes `J @ dy` by the model's own adjoint (`sliced_defocus_adjoint`,
+    # ~1x a forward pass) from the value lane's residuals, so a gradient costs the value
+    # pass with its residuals plus the adjoint (~3.0x a forward pass, median of nine runs at
+    # 512 x 512) instead of J plus the contraction (~3.2x): XLA drops whichever of J and
+    # the residuals the mode does not use.
+    rest = camera.replace(focus_distance=jax.lax.stop_gradient(camera.focus_distance),
+                          aperture_radius=jax.lax.stop_gradient(camera.aperture_radius))
+    # (inside a forward-only Jacobian, such as the fitter's, no residuals are needed)
+    adjoint = None if tracing_forward_only() else functools.partial(
+        sliced_defocus_adjoint, window=window, blades=blades, rotation=rotation, ratio=ratio)
+    out = dense_jacobian(at(sliced_defocus), y,
+                         (rgb, depth, rest, reflection, reflection_depth, layers, mirror),
+                         at(functools.partial(sliced_defocus_jacobian,
+                                              residuals=adjoint is not None)),
+                         adjoint=adjoint)
+    return out
+
+
+def _pyramid(rgb, depth, camera, reflection, reflection_depth, layers, window, blades, rotation,
+             ratio, hidden, mirror):
+    """The pyramid method (`_core`): (image, max |c|)."""
     dtype = rgb.dtype
     src_rgb, src_inv, src_a = _sources(rgb, depth, reflection, layers, dtype)
-    has_mirror = reflection is not None
-    cover = jnp.zeros((1, 1), dtype)
-    if mirror is not None:
-        refl, refl_inv, cover = mirror.radiance, inverse_depth(mirror.depth), mirror.coverage
-    elif has_mirror:
-        refl = reflection
-        refl_inv = inverse_depth(reflection_depth)
-    else:
-        refl = jnp.zeros((1, 1, 3), dtype)
-        refl_inv = jnp.zeros((1, 1), dtype)
-    config = _Config(float(window), blades, rotation, ratio, layers is None and hidden, has_mirror,
+    loose = reflection is not None and mirror is None  # the reflection added unconfined
+    refl = reflection if loose else jnp.zeros((1, 1, 3), dtype)
+    refl_inv = inverse_depth(reflection_depth) if loose else jnp.zeros((1, 1), dtype)
+    cover = jnp.zeros((1, 1), dtype) if mirror is None else mirror.coverage
+    config = _Config(float(window), blades, rotation, ratio, layers is None and hidden, loose,
                      mirror is not None)
-    return _core(
-        src_rgb, src_inv, src_a, refl, refl_inv, cover,
-        jnp.asarray(camera.focus_distance, dtype), jnp.asarray(camera.aperture_radius, dtype),
-        jnp.asarray(camera.pixel_scale, dtype), config,
-    )
+    scalars = (jnp.asarray(camera.focus_distance, dtype),
+               jnp.asarray(camera.aperture_radius, dtype), jnp.asarray(camera.pixel_scale, dtype))
+    out, max_abs = _core(src_rgb, src_inv, src_a, refl, refl_inv, cover, *scalars, config)
+    if mirror is None:
+        return out, max_abs
+    virtual, max_v = _core(mirror.radiance[None], inverse_depth(mirror.depth)[None],
+                           jnp.ones((1,) + mirror.depth.shape, dtype), refl, refl_inv, cover,
+                           *scalars, dataclasses.replace(config, mirror=False, masked=False,
+                                                         hidden=hidden))
+    return _confine(out, virtual), jnp.maximum(max_abs, max_v)
+
+
+def _confine(out, virtual):
+    """Surfaces (channels 0-2 of `out`) plus the defocused virtual scene confined to the
+    blurred mirror footprint (channel 3): module docstring, step 6."""
+    return out[..., :3] + out[..., 3:] * virtual
 
 
 def _as_array(x, dtype=None):

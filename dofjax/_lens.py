@@ -39,10 +39,12 @@ every sample is its own pinhole-like ray through the layered scene:
    renormalised; elsewhere the scatter's energy is untouched (the reads' weights sum to 1, so a
    constant-depth image keeps its total away from the borders).
 4. The mirror layer's reflected radiance is read from its own sheets at its virtual depth and
-   added without occlusion, as the other methods do. With the mirror's footprint (`Mirror`), each
-   ray also reads the footprint from sheets at the visible surface's depth and sees the
-   reflection only by that much: the ray's own product (through the mirror or not), where the
-   scatter methods multiply two averages over the lens.
+   added without occlusion. With the mirrors' footprint (`Mirror`), each ray instead reads the
+   footprint m from sheets at the visible surface's depth, and traces the virtual scene (the
+   mirror's radiance at its virtual depth, a single-layer RGB-D with its own slices, occlusion
+   and hidden-background estimate) like the surfaces; the virtual colour is renormalised over
+   the rays weighted by their m and scaled by the mean m: each ray's own product (through the
+   mirror or not), where the scatter methods multiply two averages over the lens.
 
 Hidden surfaces enter only where they lie at least one level behind the visible one (ramped
 over a second, continuous in focus and aperture): nearer, the two would share a bracket and the
@@ -207,19 +209,18 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
                              hidden),
                     len(lv))
     masked = mirror is not None
-    if masked:
-        reflection, reflection_depth = mirror.radiance, mirror.depth
-        mirror_cover = mirror.coverage
-    mirror = reflection is not None
-    if mirror:
-        c_r = jnp.clip(coc_radius(reflection_depth, camera).astype(dtype), -window, window)
-        refl_sheets = _split(_index(c_r, lv, weights), len(lv))[..., None] * reflection[None]
-        stack = jnp.concatenate([stack, refl_sheets], -1)
-    n_refl = 4 if masked else 3  # the reflection's channels (and the footprint's)
-    if masked:  # the footprint on the visible surface's sheets
+    if masked:  # the footprint on the visible surface's sheets, read like a reflection
         c0 = jnp.clip(coc_radius(depth, camera).astype(dtype), -window, window)
-        cover_sheets = _split(_index(c0, lv, weights), len(lv)) * mirror_cover[None]
-        stack = jnp.concatenate([stack, cover_sheets[..., None]], -1)
+        extra = (_split(_index(c0, lv, weights), len(lv)) * mirror.coverage[None])[..., None]
+        # and the virtual scene, its own single-layer RGB-D (with its occlusion)
+        vstack = _sheets(_sources(mirror.radiance, mirror.depth, camera, None, None, window, lv,
+                                  weights, hidden), len(lv))
+    elif reflection is not None:
+        c_r = jnp.clip(coc_radius(reflection_depth, camera).astype(dtype), -window, window)
+        extra = _split(_index(c_r, lv, weights), len(lv))[..., None] * reflection[None]
+    n_extra = 0 if reflection is None and not masked else extra.shape[-1]
+    if n_extra:  # read along each ray without occlusion
+        stack = jnp.concatenate([stack, extra], -1)
     # the widest read is window * max|l| (+ the interpolation's taps) beyond the frame
     pts = lens_points(samples, blades, rotation, ratio)
     # per lens point and slice: the read's integer offset and each axis's tap weights (host)
@@ -230,72 +231,94 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     wx, _ = _read_weights(dx - ix, interp)
     taps = wx.shape[-1]
     pad = int(math.ceil(window * float(np.abs(pts).max()))) + taps
-    stack = jnp.pad(stack, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
-    chans = stack.shape[-1]
-    used = jnp.any(stack != 0, axis=(1, 2, 3))  # (S,): slices with a source
+
+    def padded(st):  # and (S,): the slices with a source
+        st = jnp.pad(st, ((0, 0), (pad, pad), (pad, pad), (0, 0)))
+        return st, jnp.any(st != 0, axis=(1, 2, 3))
+
+    stack, used = padded(stack)
+    if masked:
+        vstack, vused = padded(vstack)
     offsets = jnp.asarray(np.stack([iy, ix], -1).astype(np.int32) + pad + first)
     weights_yx = jnp.asarray(np.stack([wy, wx], -2), dtype)  # (samples, S, 2, taps)
 
     zeros = jnp.zeros((height, width), dtype)
 
-    def sheet(carry, x):
-        # one slice, front to back along one ray: `hidden` is the coverage of the slices nearer
-        # than the previous one, `prev_cover`/`prev_front` the previous slice's (all / in front)
-        hidden, prev_cover, prev_front, colour, cover, refl = carry
-        img, off, w_yx, occupied = x
+    def along(stack, used, off, w_yx_all, n_extra):
+        """One ray through every slice of `stack`: its (colour, coverage, extra channels)."""
+        chans = stack.shape[-1]
 
-        def read(_):
-            # separable: `taps` column-shifted reads of height + taps - 1 rows, then the rows
-            w_y, w_x = w_yx[0], w_yx[1]
-            rows = sum(w_x[j] * jax.lax.dynamic_slice(
-                img, (off[0], off[1] + j, jnp.int32(0)), (height + taps - 1, width, chans))
-                for j in range(taps))
-            g = sum(w_y[i] * rows[i: i + height] for i in range(taps))
-            # sources in front of this level (in the bracket from the previous level) are
-            # hidden by everything in front of the previous level; those behind it by
-            # everything in front of this level, the previous slice and the front part here
-            a_front, a_behind = g[..., 6], g[..., 7]
-            t_front = jnp.clip(1.0 - hidden - prev_front, 0.0, 1.0)
-            t_behind = jnp.clip(1.0 - hidden - prev_cover - a_front, 0.0, 1.0)
-            # and a ray is full once its coverage reaches 1: two surfaces that share a bracket
-            # of levels (which the rules above cannot order) are seen front first
-            seen = t_front * a_front + t_behind * a_behind
-            room = jnp.clip(1.0 - cover, 0.0, 1.0)
-            # min(1, room / seen), with the denominator kept above eps: the reads' negative
-            # lobes leave traces of ~1e-20 coverage, and room / seen there had a tangent of
-            # room dseen / seen^2, which overflowed to inf and NaN in float32 (a Lanczos-read
-            # Jacobian with NaN pixels, lens-reference case 3). Where seen <= eps this moves
-            # less than eps of coverage. A `where`, not `minimum`: at seen == room (an opaque
-            # first surface, 1 == 1) the tangent must be 0, not minimum's half of each side.
-            scale = jnp.where(seen > room, room / jnp.maximum(seen, jnp.finfo(dtype).eps), 1.0)
-            return (hidden + prev_cover, a_front + a_behind, a_front,
-                    colour + (scale * t_front)[..., None] * g[..., 0:3]
-                    + (scale * t_behind)[..., None] * g[..., 3:6],
-                    cover + scale * seen,
-                    refl + g[..., 8:8 + n_refl] if mirror else refl)
+        def sheet(carry, x):
+            # one slice, front to back along one ray: `hidden` is the coverage of the slices
+            # nearer than the previous one, `prev_cover`/`prev_front` the previous slice's (all
+            # / in front)
+            hidden, prev_cover, prev_front, colour, cover, extra = carry
+            img, off, w_yx, occupied = x
 
-        def skip(_):  # an empty slice (no source within a spacing of its level) reads zeros
-            return hidden + prev_cover, zeros, zeros, colour, cover, refl
+            def read(_):
+                # separable: `taps` column-shifted reads of height + taps - 1 rows, then rows
+                w_y, w_x = w_yx[0], w_yx[1]
+                rows = sum(w_x[j] * jax.lax.dynamic_slice(
+                    img, (off[0], off[1] + j, jnp.int32(0)), (height + taps - 1, width, chans))
+                    for j in range(taps))
+                g = sum(w_y[i] * rows[i: i + height] for i in range(taps))
+                # sources in front of this level (in the bracket from the previous level) are
+                # hidden by everything in front of the previous level; those behind it by
+                # everything in front of this level, the previous slice and the front part
+                a_front, a_behind = g[..., 6], g[..., 7]
+                t_front = jnp.clip(1.0 - hidden - prev_front, 0.0, 1.0)
+                t_behind = jnp.clip(1.0 - hidden - prev_cover - a_front, 0.0, 1.0)
+                # and a ray is full once its coverage reaches 1: two surfaces that share a
+                # bracket of levels (which the rules above cannot order) are seen front first
+                seen = t_front * a_front + t_behind * a_behind
+                room = jnp.clip(1.0 - cover, 0.0, 1.0)
+                # min(1, room / seen), with the denominator kept above eps: the reads'
+                # negative lobes leave traces of ~1e-20 coverage, and room / seen there had a
+                # tangent of room dseen / seen^2, which overflowed to inf and NaN in float32 (a
+                # Lanczos-read Jacobian with NaN pixels, lens-reference case 3). Where seen <=
+                # eps this moves less than eps of coverage. A `where`, not `minimum`: at seen
+                # == room (an opaque first surface, 1 == 1) the tangent must be 0, not
+                # minimum's half of each side.
+                scale = jnp.where(seen > room,
+                                  room / jnp.maximum(seen, jnp.finfo(dtype).eps), 1.0)
+                return (hidden + prev_cover, a_front + a_behind, a_front,
+                        colour + (scale * t_front)[..., None] * g[..., 0:3]
+                        + (scale * t_behind)[..., None] * g[..., 3:6],
+                        cover + scale * seen, extra + g[..., 8:8 + n_extra])
 
-        return jax.lax.cond(occupied, read, skip, None), None
+            def skip(_):  # an empty slice (no source within a spacing of its level): zeros
+                return hidden + prev_cover, zeros, zeros, colour, cover, extra
+
+            return jax.lax.cond(occupied, read, skip, None), None
+
+        init = (zeros, zeros, zeros, jnp.zeros((height, width, 3), dtype), zeros,
+                jnp.zeros((height, width, n_extra), dtype))
+        (_, _, _, colour, cover, extra), _ = jax.lax.scan(sheet, init,
+                                                           (stack, off, w_yx_all, used))
+        return colour, cover, extra
 
     @jax.checkpoint  # reverse mode keeps one carry per lens point, recomputes the sheets
     def ray(carry, x):
         off, w = x
-        refl0 = jnp.zeros((height, width, n_refl if mirror else 0), dtype)
-        init = (zeros, zeros, zeros, jnp.zeros((height, width, 3), dtype), zeros, refl0)
-        (_, _, _, colour, cover, refl), _ = jax.lax.scan(sheet, init,
-                                                          (stack, off, w, used))
-        if masked:  # this ray sees the reflection as far as it passes through the mirror
-            refl = refl[..., 3:4] * refl[..., :3]
+        colour, cover, extra = along(stack, used, off, w, n_extra)
         c_acc, v_acc, r_acc = carry
-        return (c_acc + colour, v_acc + cover, r_acc + refl), None
+        if masked:
+            # the ray sees the virtual scene as far as it passes through the mirror (its read
+            # of the footprint m): the virtual colour and coverage weighted by m, and m itself
+            m = extra[..., 0]
+            v_colour, v_cover, _ = along(vstack, vused, off, w, 0)
+            extra = jnp.concatenate([m[..., None] * v_colour, (m * v_cover)[..., None],
+                                     m[..., None]], -1)
+        return (c_acc + colour, v_acc + cover, r_acc + extra), None
 
-    init = (jnp.zeros((height, width, 3), dtype), zeros,
-            jnp.zeros((height, width, 3 if mirror else 0), dtype))
-    (colour, cover, refl), _ = jax.lax.scan(ray, init, (offsets, weights_yx))
+    n_acc = 5 if masked else n_extra
+    init = (jnp.zeros((height, width, 3), dtype), zeros, jnp.zeros((height, width, n_acc), dtype))
+    (colour, cover, extra), _ = jax.lax.scan(ray, init, (offsets, weights_yx))
     # each ray's coverage is at most 1: below `samples` in total, the visible part is renormalised
     out = safe_div(colour, cover[..., None])
-    if mirror:
-        out = out + refl / samples
+    if masked:
+        # the virtual scene renormalised over the rays through the mirror, times their share
+        out = out + safe_div(extra[..., :3], extra[..., 3:4]) * extra[..., 4:5] / samples
+    elif n_extra:
+        out = out + extra / samples
     return out

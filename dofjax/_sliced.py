@@ -368,8 +368,9 @@ def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_de
     (S, 3, Hp, Wp), q = sign(c) c^2 (S, Hp, Wp), coverage (S, Hp, Wp), the mirror's reflected
     radiance (3, Hp, Wp) and q (Hp, Wp) or None, the peeled layers' coverage before
     their gate (`_gate`; S, Hp, Wp) or None, and the mirror footprint (Hp, Wp) or None.
-    With `mirror` (a `Mirror`) the reflected radiance and its q are the mirror's (known beyond
-    the footprint), `reflection` only what is taken out of the visible colour.
+    With `mirror` (a `Mirror`) there is no reflected-radiance source (the caller defocuses the
+    virtual scene on its own) but the footprint; `reflection` is then only what is taken out of
+    the visible colour.
 
     The inputs are padded, not the fields: depths by their edge values (every CoC stays
     finite), the rest by zeros, and q and the coverage are zeroed outside the image by a
@@ -393,9 +394,8 @@ def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_de
     q = jnp.where(inside, jnp.sign(c) * c * c, 0.0)
     q_r = refl = raw = cover = None
     if mirror is not None:
-        reflection_depth, refl_p = mirror.depth, pad(mirror.radiance, mirror.radiance.ndim - 3)
         cover = jnp.where(inside, pad(mirror.coverage, mirror.coverage.ndim - 2), 0.0)
-    if reflection is not None:
+    elif reflection is not None:
         c_r = coc_radius(pad(reflection_depth, reflection_depth.ndim - 2, "edge"),
                          camera).astype(rgb.dtype)
         q_r = jnp.where(inside, jnp.sign(c_r) * c_r * c_r, 0.0)
@@ -417,6 +417,9 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     |c| beyond the window is clamped to it. `min_radius`: the smallest
     coarse-grid kernel radius (px) a level is blurred with (`MIN_LOW_RADIUS`; larger is slower
     and closer to the exact full-resolution disc, inf blurs every level at full resolution).
+    `mirror`: a `Mirror`: the image then has a fourth channel, the mirrors' footprint scattered
+    at the visible surface's depth without occlusion (the reflection itself is left out: the
+    caller confines the separately defocused virtual scene by it).
     """
     levels = _levels(float(window))
     lay = _layout(float(window), blades, float(rotation), float(ratio), float(min_radius),
@@ -620,8 +623,10 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
     source's (and the mirror's) tangent of q from q: then the directional derivatives of the
     image come out too ((out, [d out, ...], res); else (out, [], res)).
     `residuals`: res is what `_composite_adjoint` needs of the value lane (else None).
-    `cover`: the mirror footprint (Hp, Wp) or None: then the blurred reflection is multiplied by
-    the footprint blurred at the visible surface's depth without occlusion (channel 6).
+    `cover`: the mirror footprint (Hp, Wp) or None (then `refl` must be None): the footprint is
+    also scattered at the visible surface's depth, without occlusion, and returned as a fourth
+    channel C of the image (and of its derivatives): the caller confines the separately
+    defocused virtual scene to the mirror by it (`_defocus`, step 6).
     Every quantity is carried as lanes (value, then one tangent per direction): linear steps
     (resampling, blurs) act on each lane alike, products get the product rule.
     """
@@ -638,7 +643,8 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
     d_q = [t[0] for t in tangents]
     d_alpha = [t[1] for t in tangents]
     masked = cover is not None
-    # accumulated colour channels: surfaces (+ reflection (+ the blurred footprint))
+    assert not (mirror and masked), "a footprint replaces the unconfined reflection"
+    # accumulated colour channels: surfaces (+ the reflection, or + the blurred footprint)
     nc = 3 + 3 * mirror + masked
     run_ys = []  # per run: the value lane's (hiding, rgb_b, cov_b) of every slice, or None
     far_res = None
@@ -755,8 +761,9 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
             transmit = jnp.clip(seen, 0.0, 1.0)
             colour_b = transmit * rgb_b
             if mirror:
-                colour_b = jnp.concatenate([colour_b, blurred[0][3]]
-                                           + ([blurred[0][4][None]] if masked else []))
+                colour_b = jnp.concatenate([colour_b, blurred[0][3]])
+            if masked:
+                colour_b = jnp.concatenate([colour_b, blurred[0][3][None]])
             out = [(acc_rgb + colour_b, acc_cov + transmit * cov_b, hiding_next + occ_b,
                     hiding_next + cov_b)]
             if tangents:
@@ -766,8 +773,9 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
                 d_transmit = jnp.where(inside, -d_hiding, 0.0)
                 d_colour_b = d_transmit * rgb_b + transmit * d_rgb_b
                 if mirror:
-                    d_colour_b = jnp.concatenate([d_colour_b, d_m[0]]
-                                                 + ([d_m[1][None]] if masked else []))
+                    d_colour_b = jnp.concatenate([d_colour_b, d_m[0]])
+                if masked:
+                    d_colour_b = jnp.concatenate([d_colour_b, d_m[0][None]])
                 out.append((d_rgb + d_colour_b, d_cov + d_transmit * cov_b + transmit * d_cov_b,
                             d_next + d_occ_b, d_next + d_cov_b))
             # what the adjoint (`_composite_adjoint`) needs of this slice: the value lane's
@@ -837,26 +845,23 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
     den = jnp.minimum(acc_cov[:height, :width], 1.0)
     out = safe_div(acc_rgb[:3, :height, :width], den)
     douts = []
-    if mirror:
-        refl_b = acc_rgb[3:6, :height, :width]
-        cover_b = acc_rgb[6, :height, :width] if masked else None
     for d_rgb, d_cov, *_ in state[1:]:
         d_den = jnp.where(acc_cov[:height, :width] < 1.0, d_cov[:height, :width], 0.0)
         d_out = safe_div(d_rgb[:3, :height, :width] - out * d_den, den)
-        if masked:  # the product rule through footprint * reflection
-            d_out = (d_out + cover_b * d_rgb[3:6, :height, :width]
-                     + d_rgb[6, :height, :width] * refl_b)
-        elif mirror:
+        if mirror:
             d_out = d_out + d_rgb[3:6, :height, :width]
+        if masked:  # the blurred footprint, channel 3
+            d_out = jnp.concatenate([d_out, d_rgb[3:4, :height, :width]])
         douts.append(jnp.moveaxis(d_out, 0, -1))
     if mirror:
-        out = out + (refl_b if cover_b is None else cover_b * refl_b)
+        out = out + acc_rgb[3:6, :height, :width]
+    if masked:
+        out = jnp.concatenate([out, acc_rgb[3:4, :height, :width]])
     res = None
     if residuals:
         res = {"sources": (colour, q, alpha, refl if mirror else None, q_r if mirror else None,
                            cover),
-               "ys": run_ys, "far": far_res, "final": (acc_rgb[:3], acc_cov),
-               "mirror": (refl_b, cover_b) if masked else None}
+               "ys": run_ys, "far": far_res, "final": (acc_rgb[:3], acc_cov)}
     return jnp.moveaxis(out, 0, -1), douts, res
 
 
@@ -942,13 +947,10 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
     def frame(x):  # the image's (..., height, width) in the (..., hp, wp) state frame
         return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((0, hp - height), (0, wp - width)))
 
-    if masked:  # out += cover_b * refl_b
-        refl_b, cover_b = res["mirror"]
-        g_mirror = [cover_b * ct, _channel_sum(ct * refl_b)[None]]
-    else:
-        g_mirror = [ct] if mirror else []
-    g_rgb = frame(jnp.concatenate([safe_div(ct, den)] + g_mirror))
-    g_cov = frame(jnp.where(cov < 1.0, -_channel_sum(safe_div(ct * out, den)), 0.0))
+    # (with a footprint, ct has a fourth channel: the blurred footprint's)
+    g_rgb = frame(jnp.concatenate([safe_div(ct[:3], den)] + ([ct] if mirror else [])
+                                  + ([ct[3:4]] if masked else [])))
+    g_cov = frame(jnp.where(cov < 1.0, -_channel_sum(safe_div(ct[:3] * out, den)), 0.0))
 
     # the sources' cotangents, in the image frame (a run's slices reach the padded frame's
     # border too, but no source is there)
@@ -1019,7 +1021,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
             if mirror:
                 g_blurred.append(g_rgb[3:6])
             if masked:
-                g_blurred.append(g_rgb[6])
+                g_blurred.append(g_rgb[3])
             g_state = (g_rgb, g_cov, -jnp.where((seen > 0.0) & (seen < 1.0), g_t, 0.0),
                        g_hid + g_next)
             g_f = blur_t(g_blurred, kernel, has)
@@ -1043,7 +1045,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
                 mirror_s = sum(_level_slopes(*_level_weights(q_r_p, q3, first, last), q3))
                 a_q_r = a_q_r + mirror_s * _channel_sum(g_f[3] * refl_p)
             if masked:  # the footprint rides on the visible surface's (source 0's) weights
-                a_q = a_q.at[0].add(dq_w[0] * cover_p * g_f[4])
+                a_q = a_q.at[0].add(dq_w[0] * cover_p * g_f[3])
             return a_q, a_alpha, a_q_r
 
         (g_state, (a_q, a_alpha, a_q_r)), _ = jax.lax.scan(body, (g_state, acc), xs,

@@ -236,6 +236,30 @@ def test_mirror_footprint_confines_the_blurred_reflection(method):
     np.testing.assert_allclose(out.sum(), rgb.sum(), rtol=1e-2)
 
 
+@pytest.mark.parametrize("method", ["pyramid", "sliced", "lens"])
+def test_virtual_scene_is_defocused_with_its_own_occlusion(method):
+    # Through a mirror that fills the frame, a black reflected object (c = -2 px) stands in front
+    # of a white reflected background (c = -8 px). As through a lens, the nearer object hides
+    # the background behind it: its centre stays black. Scattered additively (the unconfined
+    # reflection) the background's blur spreads over the object.
+    n = 48
+    cam = camera(n)
+    radiance = np.ones((n, n, 3))
+    radiance[18:30, 18:30] = 0.0
+    c = np.full((n, n), -8.0)
+    c[18:30, 18:30] = -2.0
+    rdepth = depth_for_coc(c, cam)
+    cover = np.ones((n, n))
+    depth = np.full((n, n), FOCUS)
+    mirror = dofjax.Mirror(coverage=cover, radiance=radiance, depth=rdepth)
+    kw = dict(method=method, **({"samples": 64} if method == "lens" else {}))
+    out = np.asarray(defocus(radiance, depth, cam, mirror=mirror, **kw))
+    loose = np.asarray(defocus(radiance, depth, cam, reflection=radiance, reflection_depth=rdepth,
+                               **kw))
+    assert np.abs(out[22:26, 22:26]).max() < 0.02
+    assert loose[22:26, 22:26].min() > 0.1
+
+
 def test_mirror_in_an_rgbd_is_used_and_checked():
     n = 24
     cam = camera(n)

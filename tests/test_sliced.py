@@ -261,7 +261,8 @@ def test_written_out_jacobian_equals_autodiff(aperture, window, extras):
     want = jax.jacfwd(f)(jnp.array([cam.focus_distance, aperture]))
     out, jac = sliced_defocus_jacobian(rgb, depth, cam, window=window, **kw)
     jac = np.stack(jac, axis=-1)
-    assert jac.shape == (n, n, 3, 2)
+    # (with a footprint, a fourth channel: the footprint blurred at the surface's depth)
+    assert jac.shape == (n, n, 4 if "masked" in extras else 3, 2)
     np.testing.assert_allclose(out, f(jnp.array([cam.focus_distance, aperture])), atol=1e-14)
     np.testing.assert_allclose(jac, want, rtol=0, atol=1e-12 * max(1.0, float(np.abs(want).max())))
     if aperture > 0:
@@ -314,7 +315,7 @@ def test_adjoint_is_the_transpose_of_the_jacobian(aperture, window, extras, min_
     kw.update(window=window, min_radius=min_radius)
     out, jac, res = sliced_defocus_jacobian(rgb, depth, cam, residuals=True, **kw)
     assert all(np.isfinite(j).all() for j in jac)
-    ct = np.random.default_rng(14).standard_normal((n, n, 3))
+    ct = np.random.default_rng(14).standard_normal(out.shape)  # (4 channels with a footprint)
     want = np.array([np.sum(j * ct) for j in jac])
     got = sliced_defocus_adjoint(res, ct, window=window, min_radius=min_radius)
     scale = np.array([np.sum(np.abs(j * ct)) for j in jac])
