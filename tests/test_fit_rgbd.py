@@ -82,5 +82,17 @@ def test_rgbd_bad_input():
                       reflection_depth=rgbd.reflection_depth)
     with pytest.raises(ValueError, match="fit_focus: reflection must be finite"):
         fit_focus(target, nan, cam)
+    m = rgbd.mirror
+    assert m is not None
+    for mirror, match in ((dofjax.Mirror(coverage=m.coverage[:-1], radiance=m.radiance,
+                                         depth=m.depth), "fit_focus: mirror must be coverage"),
+                          (dofjax.Mirror(coverage=m.coverage, radiance=m.radiance,
+                                         depth=m.depth.at[0, 0].set(np.nan)),
+                           "fit_focus: mirror.depth contains NaN")):
+        with pytest.raises(ValueError, match=match):
+            fit_focus(target, dofjax.RGBD(rgb=rgbd.rgb, depth=rgbd.depth, mirror=mirror), cam)
     with pytest.raises(ValueError, match="custom model"):
         fit_focus(target, rgbd, cam, model=lambda rgb, depth, camera: rgb)
+    with pytest.raises(ValueError, match="custom model"):  # (a footprint alone counts too)
+        fit_focus(target, dofjax.RGBD(rgb=rgbd.rgb, depth=rgbd.depth, mirror=m), cam,
+                  model=lambda rgb, depth, camera: rgb)
