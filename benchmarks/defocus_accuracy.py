@@ -33,8 +33,9 @@ removed in quadrature, and RMSE split by region:
 - border:   within (|c| + 1) px of the frame (the defocus sees nothing beyond it), not edge/halo.
 
 "share" is the region's part of the total squared error. Results: a Markdown table in
-benchmarks/results/defocus_accuracy.md, raw numbers in defocus_accuracy.json, and an error map PNG
-for quads (defocus_accuracy_quads.png).
+benchmarks/results/defocus_accuracy.md, raw numbers in defocus_accuracy.json, and error map PNGs
+for quads and the two mirror scenes (defocus_accuracy_quads.png, ..._mirror.png,
+..._bench_mirror.png).
 """
 
 from __future__ import annotations
@@ -411,9 +412,9 @@ def main():
     with open(base + ".json", "w") as fh:
         json.dump([{k: v for k, v in r.items() if k not in ("images", "masks")} for r in results],
                   fh, indent=1)
-    for r in results:
-        if r["name"] == "quads":
-            error_map(r, args, base + "_quads.png")
+    for r in results:  # (issue 3's accuracy scene, and the mirrors)
+        if r["name"] in ("quads", "mirror", "bench/mirror"):
+            error_map(r, args, base + "_" + r["name"].replace("/", "_") + ".png")
     print(f"wrote {args.out}")
 
 
