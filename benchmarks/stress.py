@@ -6,7 +6,9 @@
     python benchmarks/stress.py --method lens     # -> benchmarks/results/stress_lens.md
 
 Sweeps aperture 1e-6..1e3 (world units, fixed scene), focus 1e-3..1e6, depths exactly on the
-focal plane, depths of 1e-6, background at +inf, HDR colours up to 1e6, in float32 and float64.
+focal plane, depths of 1e-6, background at +inf, HDR colours up to 1e6, and a mirror (`Mirror`:
+footprint with a soft edge, HDR reflected radiance, virtual depths of 1e-6 and +inf, confined
+reflection) at the hardest apertures, in float32 and float64.
 For each case: are the image and d(loss)/d(focus, aperture) (reverse and forward mode) finite, and
 in float64 the relative error of the gradient against central finite differences (checked to
 1e-5 where the function is smooth: no |c| clamped at the window; the step is the smallest of
@@ -53,14 +55,37 @@ def scene(kind, focus):
     return rgb, depth
 
 
+def mirror(focus):
+    """A mirror footprint (soft top edge) showing a virtual scene with HDR radiance, virtual depths
+    of 1e-6 and +inf, and a patch on the focal plane."""
+    rng = np.random.default_rng(2)
+    cover = np.zeros((N, N))
+    cover[3:13, 12:22] = 1.0
+    cover[2, 12:22] = 0.5
+    radiance = rng.random((N, N, 3))
+    radiance[6:8, 15:17] = 1e6
+    depth = rng.uniform(0.5, 2.0, (N, N)) * focus
+    depth[:, :8] = np.inf
+    depth[4:6, 18:21] = 1e-6
+    depth[8:11, 13:16] = focus
+    return cover, radiance, depth
+
+
 def run_case(kind, focus, aperture, dtype, method="pyramid"):
     rgb, depth = scene(kind, focus)
     if kind not in ("all on focal plane",) and focus != 2.0:
         depth = depth * (focus / 2.0)  # keep the scene around the focus distance
         depth[14:20, 10:20] = focus
     cam = dofjax.Camera(width=N, height=N, fov=40.0, focus_distance=2.0, aperture_radius=0.1)
+    extras = {}
+    if kind.startswith("mirror"):
+        cover, radiance, r_depth = mirror(focus)
+        rgb = rgb * (1.0 - cover[..., None]) + cover[..., None] * radiance
+        extras["mirror"] = dofjax.Mirror(coverage=cover.astype(dtype),
+                                         radiance=radiance.astype(dtype),
+                                         depth=r_depth.astype(dtype))
     f = dofjax.defocus_fn(rgb.astype(dtype), depth.astype(dtype), cam, window=WINDOW,
-                          **method_options(method))
+                          **method_options(method), **extras)
     w = jnp.asarray(np.random.default_rng(1).random((N, N, 3)), dtype)
 
     def loss(d, a):
@@ -140,6 +165,8 @@ def main():
     for kind in ("all on focal plane", "tiny depth", "background inf", "hdr 1e6"):
         cases.append((kind, 2.0, 0.05))
     cases.append(("aperture 0", 2.0, 0.0))
+    for a in (0.0, 0.05, 1e3):
+        cases.append(("mirror", 2.0, a))
     lines = ["| case | focus | aperture | dtype | image finite | grads finite | clamped | "
              "grad vs FD (rel) | ok |", "|---|---|---|---|---|---|---|---|---|"]
     print(lines[0])

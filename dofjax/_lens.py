@@ -208,7 +208,7 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     stack = _sheets(_sources(rgb, depth, camera, reflection, layers, window, lv, weights,
                              hidden),
                     len(lv))
-    masked = mirror is not None
+    masked, extra = mirror is not None, None
     if masked:  # the footprint on the visible surface's sheets, read like a reflection
         c0 = jnp.clip(coc_radius(depth, camera).astype(dtype), -window, window)
         extra = (_split(_index(c0, lv, weights), len(lv)) * mirror.coverage[None])[..., None]
@@ -218,7 +218,7 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     elif reflection is not None:
         c_r = jnp.clip(coc_radius(reflection_depth, camera).astype(dtype), -window, window)
         extra = _split(_index(c_r, lv, weights), len(lv))[..., None] * reflection[None]
-    n_extra = 0 if reflection is None and not masked else extra.shape[-1]
+    n_extra = 0 if extra is None else extra.shape[-1]
     if n_extra:  # read along each ray without occlusion
         stack = jnp.concatenate([stack, extra], -1)
     # the widest read is window * max|l| (+ the interpolation's taps) beyond the frame
