@@ -317,8 +317,11 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     # each ray's coverage is at most 1: below `samples` in total, the visible part is renormalised
     out = safe_div(colour, cover[..., None])
     if masked:
-        # the virtual scene renormalised over the rays through the mirror, times their share
-        out = out + safe_div(extra[..., :3], extra[..., 3:4]) * extra[..., 4:5] / samples
+        # the virtual scene renormalised over the rays through the mirror, times their share;
+        # the renormalising sum kept above eps (as `scale` above): next to a footprint the reads'
+        # lobes leave sums of ~1e-20, and the quotient's tangent (1 / sum^2) overflowed float32
+        eps = jnp.finfo(dtype).eps
+        out = out + extra[..., :3] / jnp.maximum(extra[..., 3:4], eps) * extra[..., 4:5] / samples
     elif n_extra:
         out = out + extra / samples
     return out

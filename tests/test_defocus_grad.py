@@ -107,3 +107,29 @@ def test_mirror_footprint_gradients_match_finite_differences():
             g = mode(loss, argnums=(0, 1))(2.3, 0.31)
             np.testing.assert_allclose([g[0], g[1]], fd, rtol=1e-5, err_msg=method)
         assert abs(float(fd[0])) > 1e-3 and abs(float(fd[1])) > 1e-3
+
+
+def test_mirror_footprint_float32_gradients_stay_finite():
+    # next to a footprint the lens method's reads leave ~1e-20 sums of the rays' footprint; the
+    # renormalisation by them overflowed float32 in the tangent (found by benchmarks/stress.py)
+    from dofjax import Mirror
+
+    cam, rgb, depth = scene()
+    rng = np.random.default_rng(2)
+    cover = np.zeros((N, N))
+    cover[3:13, 12:22] = 1.0
+    cover[2, 12:22] = 0.5
+    mirror = Mirror(coverage=cover.astype(np.float32),
+                    radiance=rng.random((N, N, 3)).astype(np.float32),
+                    depth=rng.uniform(1.0, 4.0, (N, N)).astype(np.float32))
+    # (the pyramid's plain autodiff is covered by benchmarks/stress.py; ~1 min to compile here)
+    for method in ("sliced", "lens"):
+        kw = {"samples": 64} if method == "lens" else {}
+        f = defocus_fn(rgb.astype(np.float32), depth.astype(np.float32), cam, window=8,
+                       mirror=mirror, method=method, **kw)
+        loss = loss_fn(f)
+        for a in (0.0, 0.05, 1e3):
+            d, a = jnp.float32(2.0), jnp.float32(a)
+            for mode in (jax.grad, jax.jacfwd):
+                g = mode(lambda d, a: loss(d, a).astype(jnp.float32), argnums=(0, 1))(d, a)
+                assert np.all(np.isfinite(g)), (method, float(a), mode.__name__)
