@@ -154,6 +154,14 @@ def _check_depth(name: str, z) -> None:
             )
 
 
+def _check_unit(name: str, x) -> None:
+    """A coverage: in [0, 1]."""
+    if _is_concrete(x):
+        a = np.asarray(x)
+        if a.min() < 0 or a.max() > 1:
+            raise ValueError(f"defocus: {name} must be in [0, 1], got [{a.min()}, {a.max()}]")
+
+
 def _shape_config(shape, blades, rotation, ratio):
     if shape not in ("disc", "polygon"):
         raise ValueError(f"defocus: shape must be 'disc' or 'polygon', got {shape!r}")
@@ -227,12 +235,7 @@ def _validate(rgb, depth, camera, reflection, reflection_depth, layers, mirror=N
         _check_finite("mirror.coverage", mirror.coverage)
         _check_finite("mirror.radiance", mirror.radiance)
         _check_depth("mirror.depth", mirror.depth)
-        if _is_concrete(mirror.coverage):
-            a = np.asarray(mirror.coverage)
-            if a.min() < 0 or a.max() > 1:
-                raise ValueError(
-                    f"defocus: mirror.coverage must be in [0, 1], got [{a.min()}, {a.max()}]"
-                )
+        _check_unit("mirror.coverage", mirror.coverage)
     if layers is not None:
         if not isinstance(layers, Layers):
             raise TypeError(f"defocus: layers must be a dofjax Layers, got {type(layers).__name__}")
@@ -249,12 +252,7 @@ def _validate(rgb, depth, camera, reflection, reflection_depth, layers, mirror=N
         _check_finite("layers.rgb", layers.rgb)
         _check_finite("layers.alpha", layers.alpha)
         _check_depth("layers.depth", layers.depth)
-        if _is_concrete(layers.alpha):
-            a = np.asarray(layers.alpha)
-            if a.min() < 0 or a.max() > 1:
-                raise ValueError(
-                    f"defocus: layers.alpha must be in [0, 1], got [{a.min()}, {a.max()}]"
-                )
+        _check_unit("layers.alpha", layers.alpha)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -79,10 +79,9 @@ def test_colour_gradient():
                 rtol=1e-5)
 
 
-def test_mirror_footprint_gradients_match_finite_differences():
-    # the confined reflection is a product of two blurs (footprint at the mirror's depth,
-    # radiance at its virtual depth): its gradients in every method, forward and reverse, and
-    # the sliced method's written-out Jacobian and adjoint, against central differences
+def _mirror(dtype=np.float64):
+    """The scene with a mirror (soft top edge) showing a random virtual scene: (cam, rgb, depth,
+    `Mirror`)."""
     from dofjax import Mirror
 
     cam, rgb, depth = scene()
@@ -90,9 +89,16 @@ def test_mirror_footprint_gradients_match_finite_differences():
     cover = np.zeros((N, N))
     cover[3:15, 12:22] = 1.0
     cover[2, 12:22] = 0.5
-    mirror = Mirror(coverage=cover, radiance=rng.random((N, N, 3)),
-                    depth=rng.uniform(2.5, 6.0, (N, N)))
+    mirror = Mirror(coverage=cover.astype(dtype), radiance=rng.random((N, N, 3)).astype(dtype),
+                    depth=rng.uniform(2.5, 6.0, (N, N)).astype(dtype))
     rgb = rgb * (1.0 - cover[..., None]) + cover[..., None] * mirror.radiance
+    return cam, rgb.astype(dtype), depth.astype(dtype), mirror
+
+
+def test_mirror_footprint_gradients_match_finite_differences():
+    # the confined reflection is a product of two blurs (footprint at the mirror's depth,
+    # the virtual scene at its own): its gradients in every method against central differences
+    cam, rgb, depth, mirror = _mirror()
     for method in ("pyramid", "sliced", "lens"):
         kw = {"samples": 16} if method == "lens" else {}
         f = defocus_fn(rgb, depth, cam, window=4, mirror=mirror, method=method, **kw)
@@ -112,21 +118,11 @@ def test_mirror_footprint_gradients_match_finite_differences():
 def test_mirror_footprint_float32_gradients_stay_finite():
     # next to a footprint the lens method's reads leave ~1e-20 sums of the rays' footprint; the
     # renormalisation by them overflowed float32 in the tangent (found by benchmarks/stress.py)
-    from dofjax import Mirror
-
-    cam, rgb, depth = scene()
-    rng = np.random.default_rng(2)
-    cover = np.zeros((N, N))
-    cover[3:13, 12:22] = 1.0
-    cover[2, 12:22] = 0.5
-    mirror = Mirror(coverage=cover.astype(np.float32),
-                    radiance=rng.random((N, N, 3)).astype(np.float32),
-                    depth=rng.uniform(1.0, 4.0, (N, N)).astype(np.float32))
+    cam, rgb, depth, mirror = _mirror(np.float32)
     # (the pyramid's plain autodiff is covered by benchmarks/stress.py; ~1 min to compile here)
     for method in ("sliced", "lens"):
         kw = {"samples": 64} if method == "lens" else {}
-        f = defocus_fn(rgb.astype(np.float32), depth.astype(np.float32), cam, window=8,
-                       mirror=mirror, method=method, **kw)
+        f = defocus_fn(rgb, depth, cam, window=8, mirror=mirror, method=method, **kw)
         loss = loss_fn(f)
         for a in (0.0, 0.05, 1e3):
             d, a = jnp.float32(2.0), jnp.float32(a)
