@@ -317,11 +317,15 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     # each ray's coverage is at most 1: below `samples` in total, the visible part is renormalised
     out = safe_div(colour, cover[..., None])
     if masked:
-        # the virtual scene renormalised over the rays through the mirror, times their share;
-        # the renormalising sum kept above eps (as `scale` above): next to a footprint the reads'
-        # lobes leave sums of ~1e-20, and the quotient's tangent (1 / sum^2) overflowed float32
+        # the virtual scene renormalised over the rays through the mirror, times their share.
+        # Next to a footprint the reads' lobes leave renormalising sums of ~1e-20 of either
+        # sign: the quotient's tangent (1 / sum^2) overflowed float32 there, and a floor at
+        # +eps turned the negative ones into huge colours. So 1 / den is den / (den^2 + eps^2):
+        # exact to float precision for |den| >> eps, smoothly 0 at 0 (where the mirror's share
+        # is ~0 too), its tangent at most 1 / eps^2.
         eps = jnp.finfo(dtype).eps
-        out = out + extra[..., :3] / jnp.maximum(extra[..., 3:4], eps) * extra[..., 4:5] / samples
+        den = extra[..., 3:4]
+        out = out + extra[..., :3] * den / (den * den + eps * eps) * extra[..., 4:5] / samples
     elif n_extra:
         out = out + extra / samples
     return out
