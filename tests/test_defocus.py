@@ -206,6 +206,20 @@ def test_mirror_reflection_blurred_at_its_virtual_depth():
     np.testing.assert_allclose(mirrored.sum(), rgb.sum(), rtol=1e-3)  # reflection keeps its energy
 
 
+def _mirror_rect(cam, n, rows, cols, radiance, c_virtual):
+    """A rectangular mirror footprint showing `radiance` at CoC `c_virtual` px: (rgb = the part
+    of the image it makes, `Mirror`)."""
+    cover = np.zeros((n, n))
+    cover[rows, cols] = 1.0
+    rdepth = depth_for_coc(np.full((n, n), c_virtual), cam)
+    mirror = dofjax.Mirror(coverage=cover, radiance=radiance, depth=rdepth)
+    return cover[..., None] * radiance, mirror
+
+
+def _lens_kw(method):
+    return dict(method=method, **({"samples": 64} if method == "lens" else {}))
+
+
 @pytest.mark.parametrize("method", ["pyramid", "sliced", "lens"])
 def test_mirror_footprint_confines_the_blurred_reflection(method):
     # An in-focus mirror (a square on the focal plane, black itself) shows a white virtual scene
@@ -215,16 +229,12 @@ def test_mirror_footprint_confines_the_blurred_reflection(method):
     # reflection spreads 6 px past the edge and the mirror darkens inside its border.
     n = 48
     cam = camera(n)
-    cover = np.zeros((n, n))
-    cover[14:34, 14:34] = 1.0
-    radiance = np.ones((n, n, 3))
-    rdepth = depth_for_coc(np.full((n, n), -6.0), cam)
-    rgb = cover[..., None] * radiance
+    rgb, mirror = _mirror_rect(cam, n, slice(14, 34), slice(14, 34), np.ones((n, n, 3)), -6.0)
     depth = np.full((n, n), FOCUS)
-    mirror = dofjax.Mirror(coverage=cover, radiance=radiance, depth=rdepth)
-    kw = dict(method=method, **({"samples": 64} if method == "lens" else {}))
+    kw = _lens_kw(method)
     out = np.asarray(defocus(rgb, depth, cam, mirror=mirror, **kw))
-    loose = np.asarray(defocus(rgb, depth, cam, reflection=rgb, reflection_depth=rdepth, **kw))
+    loose = np.asarray(defocus(rgb, depth, cam, reflection=rgb, reflection_depth=mirror.depth,
+                               **kw))
     outside = np.ones((n, n), bool)
     outside[12:36, 12:36] = False  # 2 px from the edge: the in-focus edge's own soft blur
     inside = np.zeros((n, n), bool)
@@ -245,15 +255,10 @@ def test_defocused_mirror_keeps_the_reflections_energy_and_range(method):
     # made its negative values huge colours: mean 51 instead of 0.28 on examples/mirror.)
     n = 48
     cam = camera(n)
-    cover = np.zeros((n, n))
-    cover[14:34, 12:36] = 1.0
-    radiance = 0.2 + 0.6 * smooth_texture(n, seed=5)
-    rdepth = depth_for_coc(np.full((n, n), -4.0), cam)
-    rgb = cover[..., None] * radiance
+    rgb, mirror = _mirror_rect(cam, n, slice(14, 34), slice(12, 36),
+                               0.2 + 0.6 * smooth_texture(n, seed=5), -4.0)
     depth = depth_for_coc(np.full((n, n), 2.5), cam)
-    mirror = dofjax.Mirror(coverage=cover, radiance=radiance, depth=rdepth)
-    kw = dict(method=method, **({"samples": 64} if method == "lens" else {}))
-    out = np.asarray(defocus(rgb, depth, cam, mirror=mirror, **kw))
+    out = np.asarray(defocus(rgb, depth, cam, mirror=mirror, **_lens_kw(method)))
     assert out.min() > -0.02 and out.max() < 0.82
     np.testing.assert_allclose(out.sum(), rgb.sum(), rtol=2e-2)
 
@@ -274,7 +279,7 @@ def test_virtual_scene_is_defocused_with_its_own_occlusion(method):
     cover = np.ones((n, n))
     depth = np.full((n, n), FOCUS)
     mirror = dofjax.Mirror(coverage=cover, radiance=radiance, depth=rdepth)
-    kw = dict(method=method, **({"samples": 64} if method == "lens" else {}))
+    kw = _lens_kw(method)
     out = np.asarray(defocus(radiance, depth, cam, mirror=mirror, **kw))
     loose = np.asarray(defocus(radiance, depth, cam, reflection=radiance, reflection_depth=rdepth,
                                **kw))
