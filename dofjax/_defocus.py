@@ -122,8 +122,8 @@ class _Config:
     rotation: float
     ratio: float
     hidden: bool  # estimate the hidden background (single-layer input)
-    mirror: bool
-    masked: bool = False  # the reflection confined to the blurred mirror footprint
+    mirror: bool  # the reflection scattered at its virtual depth, unconfined
+    masked: bool = False  # the mirror footprint blurred, as a fourth channel (step 6)
 
 
 # ---------------------------------------------------------------------------------------------
