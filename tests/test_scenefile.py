@@ -640,7 +640,7 @@ def test_scene_to_dict_needs_texture_specs():
 # Shipped examples
 
 
-@pytest.mark.parametrize("name", ["spheres", "quads", "mirror", "mesh", "boxes"])
+@pytest.mark.parametrize("name", ["spheres", "quads", "mirror", "mirror_spheres", "mesh", "boxes"])
 def test_examples_load(name, tmp_path):
     path = EXAMPLES / f"{name}.json"
     scene = load_scene(path)
@@ -656,7 +656,7 @@ def test_examples_load(name, tmp_path):
         if x is not None
     )
     assert lights == (0 if name == "quads" else 1)  # quads.json is unlit on purpose
-    if name == "mirror":
+    if name.startswith("mirror"):
         assert scene.max_bounces > 0 and float(np.max(np.asarray(scene.materials.mirror))) > 0
     if name == "mesh":
         assert scene.triangles is not None and scene.triangles.v0.shape[0] >= 26
@@ -668,7 +668,7 @@ def test_examples_load(name, tmp_path):
 
 def test_all_example_files_are_tested():
     names = {p.stem for p in EXAMPLES.glob("*.json")}
-    assert names == {"spheres", "quads", "mirror", "mesh", "boxes"}
+    assert names == {"spheres", "quads", "mirror", "mirror_spheres", "mesh", "boxes"}
 
 
 def test_documented_example_loads():
