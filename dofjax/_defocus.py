@@ -222,9 +222,7 @@ def _validate(rgb, depth, camera, reflection, reflection_depth, layers, mirror=N
             )
         _check_finite("reflection", reflection)
         _check_depth("reflection_depth", reflection_depth)
-    if mirror is not None:
-        if not isinstance(mirror, Mirror):
-            raise TypeError(f"defocus: mirror must be a dofjax Mirror, got {type(mirror).__name__}")
+    if mirror is not None:  # (a `Mirror` of arrays: `as_mirror`)
         if (mirror.coverage.shape != (h, w) or mirror.radiance.shape != (h, w, 3)
                 or mirror.depth.shape != (h, w)):
             raise ValueError(
@@ -568,6 +566,17 @@ def _as_array(x, dtype=None):
     return x.astype(dtype)
 
 
+def as_mirror(name: str, mirror, dtype) -> Mirror | None:
+    """`mirror` (None or a `Mirror`) with its fields as `dtype` arrays; anything else is a
+    TypeError naming `name`. Values and shapes: `_validate`."""
+    if mirror is None:
+        return None
+    if not isinstance(mirror, Mirror):
+        raise TypeError(f"{name}: mirror must be a dofjax Mirror, got {type(mirror).__name__}")
+    return Mirror(coverage=_as_array(mirror.coverage, dtype),
+                  radiance=_as_array(mirror.radiance, dtype), depth=_as_array(mirror.depth, dtype))
+
+
 def check_hidden(name: str, hidden, method: str, layers=None) -> bool:
     """The hidden-background estimate's switch: None is the method's default (on for "pyramid"
     and "lens", off for "sliced", where it costs ~1.5x the forward pass); True needs
@@ -617,12 +626,7 @@ def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, meth
     rgb = _as_array(rgb)
     dtype = rgb.dtype
     depth = _as_array(depth, dtype)
-    if mirror is not None:
-        if not isinstance(mirror, Mirror):
-            raise TypeError(f"{name}: mirror must be a dofjax Mirror, got {type(mirror).__name__}")
-        mirror = Mirror(coverage=_as_array(mirror.coverage, dtype),
-                        radiance=_as_array(mirror.radiance, dtype),
-                        depth=_as_array(mirror.depth, dtype))
+    mirror = as_mirror(name, mirror, dtype)
     reflection = _as_array(reflection, dtype)
     reflection_depth = _as_array(reflection_depth, dtype)
     s = supersampling(rgb.shape, camera)

@@ -71,7 +71,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._autodiff import value_and_jacobian
 from ._camera import Camera, coc_radius
-from ._defocus import supersampling
+from ._defocus import as_mirror, supersampling
 from ._linalg import ThinQR, unit_column_svd
 from ._numerics import box_pool as _pool, inverse_depth, safe_div
 from ._rgbd import RGBD, Layers, Mirror
@@ -1332,13 +1332,11 @@ def _unpack(name: str, rgb, depth, camera, model):
     def arr(x):
         return None if x is None else jnp.asarray(x, dtype)
 
-    lay, m = rgbd.layers, rgbd.mirror
+    lay = rgbd.layers
     extras = _Extras(reflection=arr(rgbd.reflection), reflection_depth=arr(rgbd.reflection_depth),
                      layers=None if lay is None else Layers(rgb=arr(lay.rgb), depth=arr(lay.depth),
                                                             alpha=arr(lay.alpha)),
-                     mirror=None if m is None else Mirror(coverage=arr(m.coverage),
-                                                          radiance=arr(m.radiance),
-                                                          depth=arr(m.depth)))
+                     mirror=as_mirror(name, rgbd.mirror, dtype))
     # (a supersampled sharp input, see fit_focus: checked against its own camera)
     camera_sharp = camera.scaled(supersampling(np.shape(rgbd.depth), camera))
     try:  # the defocus' own checks of the mirror layer and the peeled layers

@@ -93,6 +93,8 @@ def test_rgbd_bad_input():
             fit_focus(target, dofjax.RGBD(rgb=rgbd.rgb, depth=rgbd.depth, mirror=mirror), cam)
     with pytest.raises(ValueError, match="custom model"):
         fit_focus(target, rgbd, cam, model=lambda rgb, depth, camera: rgb)
+    with pytest.raises(TypeError, match="fit_focus: mirror must be a dofjax Mirror"):
+        fit_focus(target, dofjax.RGBD(rgb=rgbd.rgb, depth=rgbd.depth, mirror=m.coverage), cam)
     with pytest.raises(ValueError, match="custom model"):  # (a footprint alone counts too)
         fit_focus(target, dofjax.RGBD(rgb=rgbd.rgb, depth=rgbd.depth, mirror=m), cam,
                   model=lambda rgb, depth, camera: rgb)
