@@ -1,28 +1,33 @@
-"""Run time versus error: every defocus variant, the seed's algorithm and lens sampling, measured
+"""Run time versus error: every defocus method, the seed's algorithm and lens sampling, measured
 against a high-spp lens-sampling ground truth (issue 4; DESIGN.md section 4).
 
     python benchmarks/time_vs_error.py                       # default: 64x64, truth 4096 spp
     python benchmarks/time_vs_error.py --size 128 --scenes occluders,mirror
+    python benchmarks/time_vs_error.py --methods sliced --sharp-spp 16 --layers 3
 
 Scenes are the JSON files in benchmarks/scenes/ (their camera sections give the pose and field of
 view; `SETTINGS` below gives the focus/aperture/shape settings of each). For every scene setting:
 
 - ground truth: `dofjax.render_reference` at --truth-spp (default 4096) spp, cached on disk under
-  benchmarks/results/cache/ (keyed by scene file contents, setting, size and spp);
-- methods: `dofjax.defocus` on `dofjax.render` output (single layer; K peeled layers; the mirror
-  layer ignored, where the scene has mirrors), the seed's algorithm (`seed_defocus`, the "before"
-  row), and `render_reference` at --spps (1, 4, ..., 1024);
+  benchmarks/results/cache/ (keyed by scene file contents, setting, size, spp and the renderer's
+  code, `_common.code_hash`);
+- methods: `dofjax.defocus` with each of --methods (pyramid, sliced, sliced+hidden, lens) on a
+  `dofjax.render` at each --sharp-spp (4, 16) with a guard band (`Camera.padded`), single layer
+  and K peeled layers (--layers, 3), mirrors confined to their footprint (`RGBD.mirror`); where
+  the scene has mirrors, also the reflection blurred at the mirror's depth (the seed's listed
+  inaccuracy); the seed's algorithm (`seed_defocus`, the "before" row); and `render_reference`
+  at --spps (1, 4, ..., 1024);
 - timing: median of --runs (>= 5) calls after one warm-up call, with the compile time (first call
   minus median) separate, `block_until_ready` on every result; defocus is reported alone and as a
   pipeline (sharp render + defocus), and forward + reverse-mode gradient of an image loss with
-  respect to (focus distance, aperture) where differentiable. Lens sampling is timed on the first
-  setting of each scene (its cost does not depend on focus or aperture) and its error measured on
-  every setting.
-- error: RMSE, PSNR and SSIM (scikit-image; data range 1 = white) against the truth.
+  respect to (focus distance, aperture) (not for the lens method unless --lens-grad: its
+  compile is slow). Lens sampling is timed on the first setting of each scene (its cost does not
+  depend on focus or aperture) and its error measured on every setting.
+- error: RMSE, PSNR and SSIM (scikit-image; data range 1 = white) against the truth, on linear
+  colours (HDR values above 1 count fully).
 
 Writes benchmarks/results/time_vs_error.{md,json,png} and prints the table and the headline: "to
-match defocus's error, lens sampling needs N times the time".
-"""
+match defocus's error, lens sampling needs N times the time"."""
 
 from __future__ import annotations
 
@@ -40,6 +45,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import code_hash, method_options
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 import dofjax
@@ -113,7 +119,8 @@ def sized_camera(camera: dofjax.Camera, size: int, setting: dict) -> dofjax.Came
 def ground_truth(scene, cam, scene_text: str, setting: dict, args) -> np.ndarray:
     shape = setting.get("shape", {})
     tag = json.dumps(dict(scene=scene_text, setting=setting, size=args.size, spp=args.truth_spp,
-                          sampler="stratified", key=0, version=1), sort_keys=True)
+                          sampler="stratified", key=0, version=2,
+                          renderer=code_hash()), sort_keys=True)
     digest = hashlib.sha256(tag.encode()).hexdigest()[:16]
     path = Path(args.cache) / f"truth_{digest}.npy"
     if path.exists():
@@ -130,75 +137,101 @@ def ground_truth(scene, cam, scene_text: str, setting: dict, args) -> np.ndarray
 
 
 def max_abs_coc(rgbd, cam) -> float:
-    """Largest |c| (px) over every depth the defocus will see (layers, reflections included)."""
+    """Largest |c| (px) over every depth the defocus will see (layers, mirrors included)."""
     depths = [rgbd.depth]
     if rgbd.layers is not None:
         depths.append(rgbd.layers.depth)
     if rgbd.reflection_depth is not None:
         depths.append(rgbd.reflection_depth)
+    if rgbd.mirror is not None:  # the virtual depths on the mirrors' footprint
+        depths.append(jnp.where(rgbd.mirror.coverage > 0, rgbd.mirror.depth, jnp.inf))
     return max(float(jnp.max(jnp.abs(dofjax.coc_radius(d, cam)))) for d in depths)
 
 
 def seed_function():
     fn = getattr(dofjax, "seed_defocus", None)
-    if fn is None:  # not re-exported yet: the module is still the seed's algorithm as written
-        try:
-            from dofjax._seed import seed_defocus as fn
-        except ImportError:
-            fn = None
+    if fn is None:  # not re-exported: the module that keeps the seed's algorithm as written
+        from dofjax._seed import seed_defocus as fn
     return fn
 
 
+def variants(args) -> list[tuple[str, dict, int | None]]:
+    """(label, `dofjax.defocus` keywords, peeled layers K or None) of every defocus row: each
+    `--methods` token on single-layer RGB-D, and each token without "+hidden" on K peeled
+    layers for every K in `--layers` (peeled layers replace the hidden-background estimate)."""
+    out = [(f"{token}, 1 layer", method_options(token), None) for token in args.methods]
+    for k in args.layers:
+        out += [(f"{token}, {k} layers", method_options(token), k)
+                for token in args.methods if not token.endswith("+hidden")]
+    return out
+
+
 def defocus_rows(scene, cam, truth, setting, args) -> list[dict]:
+    """Every defocus variant at every `--sharp-spp`, each from a sharp render with a guard band
+    of the frame's largest |c| + 2 px (`Camera.padded`, `defocus(..., margin=)`): the blur then
+    gathers what lies just beyond the frame, as the lens does. *pipeline* = that render (with
+    its layers and mirror channels) + the defocus call."""
     shape = setting.get("shape", {})
-    rows = []
-    variants = [("defocus, 1 layer", None)] + [
-        (f"defocus, {k} peeled layers", k) for k in args.layers
-    ]
+    margin = math.ceil(max_abs_coc(dofjax.render(scene, cam), cam)) + 2
+    pcam = cam.padded(margin)
     truth_j = jnp.asarray(truth, dtype=jnp.float32)
-    for name, layers in variants:
-        rgbd, t_render, c_render, _ = timed(
-            lambda layers=layers: dofjax.render(scene, cam, spp=args.sharp_spp, layers=layers),
-            args.runs,
-        )
-        out, t_fwd, c_fwd, _ = timed(lambda rgbd=rgbd: dofjax.defocus(rgbd, cam, **shape),
-                                     args.runs)
-        # Forward + reverse-mode gradient of an image loss w.r.t. (focus, aperture), through the
-        # jittable entry point with the window the forward call chose (the image's largest |c|).
-        f = dofjax.defocus_fn(rgbd, cam, window=max(max_abs_coc(rgbd, cam), 1.0), **shape)
-
-        @jax.jit
-        def loss_and_grad(d, a, f=f):
-            return jax.value_and_grad(
-                lambda p: jnp.mean((f(p[0], p[1]) - truth_j) ** 2)
-            )(jnp.stack([d, a]))
-
-        d0 = jnp.asarray(setting["focus"], jnp.float32)
-        a0 = jnp.asarray(setting["aperture"], jnp.float32)
-        _, t_grad, c_grad, _ = timed(lambda: loss_and_grad(d0, a0), args.runs)
-        rows.append(dict(method=name, kind="defocus", time=t_fwd, compile=c_fwd,
-                         render_time=t_render, render_compile=c_render,
-                         pipeline_time=t_render + t_fwd, grad_time=t_grad, grad_compile=c_grad,
-                         **metrics(out, truth)))
-        if layers is None and rgbd.reflection is not None:
-            # The seed's listed inaccuracy: reflected light blurred at the mirror's depth.
+    d0 = jnp.asarray(setting["focus"], jnp.float32)
+    a0 = jnp.asarray(setting["aperture"], jnp.float32)
+    rows = []
+    for sharp_spp in args.sharp_spp:
+        renders = {}  # K -> (RGBD, time, compile): one render per layer count
+        for label, opts, layers in variants(args):
+            if layers not in renders:
+                renders[layers] = timed(
+                    lambda k=layers, n=sharp_spp: dofjax.render(scene, pcam, spp=n, layers=k),
+                    args.runs)[:3]
+            rgbd, t_render, c_render = renders[layers]
             out, t_fwd, c_fwd, _ = timed(
-                lambda rgbd=rgbd: dofjax.defocus(rgbd.rgb, rgbd.depth, cam, **shape), args.runs
-            )
-            rows.append(dict(method="defocus, 1 layer, mirror at its own depth", kind="defocus",
-                             time=t_fwd, compile=c_fwd, render_time=t_render,
-                             render_compile=c_render, pipeline_time=t_render + t_fwd,
-                             grad_time=None, grad_compile=None, **metrics(out, truth)))
+                lambda rgbd=rgbd, opts=opts: dofjax.defocus(rgbd, cam, margin=margin, **opts,
+                                                            **shape),
+                args.runs)
+            grad_time = grad_compile = None
+            if opts["method"] != "lens" or args.lens_grad:
+                # forward + reverse-mode gradient of an image loss w.r.t. (focus, aperture),
+                # through the jittable entry point with the window the forward call chose
+                f = dofjax.defocus_fn(rgbd, cam, window=max(max_abs_coc(rgbd, cam), 1.0),
+                                      margin=margin, **opts, **shape)
+
+                @jax.jit
+                def loss_and_grad(d, a, f=f):
+                    return jax.value_and_grad(
+                        lambda p: jnp.mean((f(p[0], p[1]) - truth_j) ** 2))(jnp.stack([d, a]))
+
+                _, grad_time, grad_compile, _ = timed(lambda g=loss_and_grad: g(d0, a0),
+                                                      args.runs)
+            rows.append(dict(method=f"{label}, sharp {sharp_spp} spp", variant=label,
+                             kind="defocus", sharp_spp=sharp_spp, time=t_fwd,
+                             compile=c_fwd, render_time=t_render, render_compile=c_render,
+                             pipeline_time=t_render + t_fwd, grad_time=grad_time,
+                             grad_compile=grad_compile, **metrics(out, truth)))
+        rgbd, t_render, c_render = renders[None]
+        if rgbd.mirror is not None and sharp_spp == max(args.sharp_spp):
+            # The seed's listed inaccuracy: reflected light blurred at the mirror's depth.
+            opts = method_options(args.methods[0])
+            out, t_fwd, c_fwd, _ = timed(
+                lambda: dofjax.defocus(rgbd.rgb, rgbd.depth, cam, margin=margin, **opts,
+                                       **shape), args.runs)
+            label = f"{args.methods[0]}, 1 layer, mirrors at their own depth"
+            rows.append(dict(method=f"{label}, sharp {sharp_spp} spp", variant=label,
+                             kind="defocus", sharp_spp=sharp_spp, time=t_fwd, compile=c_fwd,
+                             render_time=t_render, render_compile=c_render,
+                             pipeline_time=t_render + t_fwd, grad_time=None, grad_compile=None,
+                             **metrics(out, truth)))
+    # the seed's algorithm as written (no guard band, pixel-centre sharp input: as the seed did)
+    rgbd, t_render, _, _ = timed(lambda: dofjax.render(scene, cam), args.runs)
+    rgb, depth = np.asarray(rgbd.rgb), np.asarray(rgbd.depth)
     seed = seed_function()
-    if seed is not None:
-        rgbd = dofjax.render(scene, cam, spp=args.sharp_spp)
-        rgb, depth = np.asarray(rgbd.rgb), np.asarray(rgbd.depth)
-        out, t_fwd, c_fwd, _ = timed(lambda: seed(rgb, depth, cam), args.runs)
-        t_render = rows[0]["render_time"]
-        rows.append(dict(method="seed (Yu 2004, as written)", kind="seed", time=t_fwd,
-                         compile=c_fwd, render_time=t_render, render_compile=None,
-                         pipeline_time=t_render + t_fwd, grad_time=None, grad_compile=None,
-                         **metrics(out, truth)))
+    out, t_fwd, c_fwd, _ = timed(lambda: seed(rgb, depth, cam), args.runs)
+    rows.append(dict(method="seed (Yu 2004, as written)", variant="seed", kind="seed",
+                     sharp_spp=1, time=t_fwd,
+                     compile=c_fwd, render_time=t_render, render_compile=None,
+                     pipeline_time=t_render + t_fwd, grad_time=None, grad_compile=None,
+                     **metrics(out, truth)))
     return rows
 
 
@@ -259,7 +292,9 @@ def write_outputs(results: list[dict], args, headline: list[str]):
         "Command: `" + f"python benchmarks/time_vs_error.py {args.command}".strip() + "`",
         "",
         f"{args.size}x{args.size} px, float32, ground truth = `render_reference` at "
-        f"{args.truth_spp} spp (stratified), sharp input rendered at {args.sharp_spp} spp; "
+        f"{args.truth_spp} spp (stratified), sharp input rendered at "
+        f"{' and '.join(str(n) for n in args.sharp_spp)} spp with a guard band of the largest "
+        "|CoC| + 2 px (the seed's row: 1 spp, no guard band, as the seed did); "
         f"median of {args.runs} runs after warm-up on {platform.machine()} with "
         f"{os.cpu_count()} CPU cores ({jax.default_backend()}), jax {jax.__version__}. "
         "Times in ms unless marked s. *time* is the method alone, *pipeline* adds the sharp "
@@ -306,11 +341,12 @@ def plot(results: list[dict], path: Path):
     cols = 2
     rows = -(-n // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(11, 3.6 * rows), squeeze=False)
-    names = []
+    names, top = [], max(r.get("sharp_spp", 1) for res in results for r in res["rows"])
     for res in results:
-        names += [r["method"] for r in res["rows"]
-                  if r["kind"] != "lens" and r["method"] not in names]
-    # One marker and colour per method across all panels.
+        names += [r.get("variant", r["method"]) for r in res["rows"]
+                  if r["kind"] != "lens" and r.get("variant", r["method"]) not in names]
+    # One marker and colour per variant across all panels; filled at the largest sharp spp,
+    # hollow below it.
     style = {m: ("osD^vP*X"[i % 8], f"C{i % 10}") for i, m in enumerate(names)}
     for ax, res in zip(axes.flat, results, strict=False):
         lens = [r for r in res["rows"] if r["kind"] == "lens"]
@@ -320,8 +356,10 @@ def plot(results: list[dict], path: Path):
             ax.annotate(str(r["spp"]), (r["time"], r["rmse"]), fontsize=7,
                         textcoords="offset points", xytext=(3, 3))
         for r in (r for r in res["rows"] if r["kind"] != "lens"):
-            marker, colour = style[r["method"]]
+            marker, colour = style[r.get("variant", r["method"])]
+            filled = r["kind"] == "seed" or r.get("sharp_spp", 1) == top
             ax.loglog([r["pipeline_time"]], [r["rmse"]], marker, color=colour,
+                      mfc=colour if filled else "none",
                       label=f"{r['method']} (render + defocus)" if r["kind"] == "defocus"
                       else f"{r['method']} (render + seed)")
         ax.axhline(res["truth_noise"], color="0.7", lw=0.8, ls=":")
@@ -368,7 +406,8 @@ def headline_lines(results: list[dict]) -> list[str]:
             continue
         extra = []
         if notes.count("extrapolated"):
-            extra.append(f"{notes.count('extrapolated')} extrapolated beyond 1024 spp")
+            extra.append(f"{notes.count('extrapolated')} extrapolated beyond "
+                         f"{max(r['spp'] for r in lens)} spp")
         if notes.count("<="):
             extra.append(f"{notes.count('<=')} where 1 spp already matches (ratio is an upper "
                          "bound)")
@@ -376,7 +415,7 @@ def headline_lines(results: list[dict]) -> list[str]:
             f"To match the error of **{method}**, lens sampling needs "
             f"**{statistics.median(ratios):.1f}x** the time of render + defocus "
             f"(median over {len(ratios)} scene settings, range {min(ratios):.2g}x to "
-            f"{max(ratios):.2g}x; {statistics.median(ratios_alone):.0f}x the defocus call "
+            f"{max(ratios):.2g}x; {statistics.median(ratios_alone):.2g}x the defocus call "
             f"alone){'; ' + ', '.join(extra) if extra else ''}."
         )
     return out
@@ -388,8 +427,14 @@ def main(argv=None) -> int:
     p.add_argument("--truth-spp", type=int, default=4096, help="ground-truth spp (default 4096)")
     p.add_argument("--spps", default="1,4,16,64,256,1024", help="lens-sampling spp to compare")
     p.add_argument("--runs", type=int, default=5, help="timed runs after warm-up (>= 5)")
-    p.add_argument("--sharp-spp", type=int, default=4, help="spp of the sharp render (default 4)")
-    p.add_argument("--layers", default="2,4", help="peeled-layer counts K to try (default 2,4)")
+    p.add_argument("--sharp-spp", default="4,16",
+                   help="spp of the sharp render that defocus starts from (default 4,16)")
+    p.add_argument("--methods", default="pyramid,sliced,sliced+hidden,lens",
+                   help="defocus methods: pyramid, sliced, lens, or METHOD+hidden (the "
+                        "hidden-background estimate of single-layer input)")
+    p.add_argument("--layers", default="3", help="peeled-layer counts K to try (default 3)")
+    p.add_argument("--lens-grad", action="store_true",
+                   help="also time the lens method's gradient (slow to compile)")
     p.add_argument("--scenes", default=",".join(SETTINGS), help="comma-separated scene names")
     p.add_argument("--out", default=str(HERE / "results"), help="output folder")
     p.add_argument("--cache", default=str(HERE / "results" / "cache"), help="ground-truth cache")
@@ -409,6 +454,13 @@ def main(argv=None) -> int:
         return 0
     args.spps = [int(s) for s in args.spps.split(",")]
     args.layers = [int(s) for s in args.layers.split(",") if s]
+    args.sharp_spp = [int(s) for s in args.sharp_spp.split(",") if s]
+    args.methods = [s for s in args.methods.split(",") if s]
+    for token in args.methods:
+        try:
+            method_options(token)
+        except ValueError as e:
+            p.error(f"--methods: {e}")
     args.scenes = [s for s in args.scenes.split(",") if s]
     if args.runs < 5:
         p.error(f"--runs must be >= 5 (median of at least 5 timed runs), got {args.runs}")
