@@ -31,11 +31,14 @@ Algorithm (a layered pyramid):
    (the mirror's radiance, known a little beyond the footprint, at its virtual depth) defocused
    as its own single-layer RGB-D by the same method (its occlusion: a nearer reflected object
    hides the reflected sky behind it), C the footprint scattered at the visible surface's depth
-   without occlusion (a fourth channel of the surfaces' pass). A lens sees the virtual scene
-   only through the mirror, so an in-focus mirror edge stays sharp however blurred the
-   reflection. (Unconfined, the scatter leaked the reflection up to its CoC past the edge,
-   darkened the mirror inside it where the virtual scene beyond the footprint was missing, and
-   spread the reflected sky over the reflected objects in front of it: benchmarks/README.md.)
+   (a fourth channel of the surfaces' pass, occluded and renormalised where the coverage is
+   below 1 like their colour: the share of the lens that sees the mirror, so a blurred
+   foreground in front of the mirror hides the reflection as it hides the mirror). A lens sees
+   the virtual scene only through the mirror, so an in-focus mirror edge stays sharp however
+   blurred the reflection. (Unconfined, the scatter leaked the reflection up to its CoC past
+   the edge, darkened the mirror inside it where the virtual scene beyond the footprint was
+   missing, and spread the reflected sky over the reflected objects in front of it:
+   benchmarks/README.md.)
 
 All of it is smooth jnp maths on fixed shapes, so forward- and reverse-mode derivatives w.r.t.
 `focus_distance`, `aperture_radius` and the colours cost a small multiple of the forward pass.
@@ -344,8 +347,9 @@ def _core(rgb, inv, alpha, refl, refl_inv, cover, focus_distance, aperture_radiu
 
     refl/refl_inv: (H, W, 3)/(H, W) mirror radiance and its inverse virtual depth (or dummies when
     config.mirror is False); cover: (H, W) mirror footprint (config.masked; else a dummy): then
-    the image has a fourth channel, the footprint scattered at the visible surface's depth
-    without occlusion (module docstring, step 6).
+    the image has a fourth channel, the footprint scattered at the visible surface's depth and
+    occluded like its colour, renormalised where the coverage is below 1 (module docstring,
+    step 6).
     Returns (image (H, W, 3 or 4), max |c| over all sources).
     """
     plan = make_plan(config.window, config.blades, config.rotation, config.ratio)
@@ -365,12 +369,17 @@ def _core(rgb, inv, alpha, refl, refl_inv, cover, focus_distance, aperture_radiu
     # A hidden layer matters only where its blur differs from the visible surface's by more than a
     # pixel: closer than that it is seen through the surface one slice in front of it (the
     # quads benchmark: layered RMSE 0.024 -> 0.011 with this gate), as in the sliced method.
-    srcs = [(rgb_c[0], c[0], alpha[0])] + [
-        (rgb_c[i], c[i], alpha[i] * jnp.clip(jnp.abs(c[i] - c[0]) - 1.0, 0.0, 1.0))
-        for i in range(1, L)]
+    # The same holds for the hidden-background estimate: its pull-push fill can put it within
+    # a pixel of CoC of the surface in front (behind a slanted in-focus mirror's far edge it
+    # showed through at ~45 %, benchmarks/README.md), so it is gated alike.
+    def behind(c_i, a_i):
+        return a_i * jnp.clip(jnp.abs(c_i - c[0]) - 1.0, 0.0, 1.0)
+
+    srcs = [(rgb_c[0], c[0], alpha[0])] + [(rgb_c[i], c[i], behind(c[i], alpha[i]))
+                                           for i in range(1, L)]
     if config.hidden:
         h_rgb, h_c, h_a = hidden_layer(rgb_c[0], c[0], config.window)
-        srcs.append((h_rgb, h_c, h_a))
+        srcs.append((h_rgb, h_c, behind(h_c, h_a)))
 
     m = plan.max_scale
     hp, wp = -(-h // m) * m, -(-w // m) * m
@@ -426,14 +435,14 @@ def _core(rgb, inv, alpha, refl, refl_inv, cover, focus_distance, aperture_radiu
         if config.mirror:
             refl_sum = refl_sum + y[5:8]
         if config.masked:
-            cover_sum = cover_sum + y[8]
+            cover_sum = cover_sum + t * y[8]
         a_hist.append(a)
         af_hist.append(af)
     out = num / jnp.maximum(den, 1e-6)[None]
     if config.mirror:
         out = out + refl_sum
-    if config.masked:
-        out = jnp.concatenate([out, cover_sum[None]])
+    if config.masked:  # occluded like the colour, renormalised only where coverage is short
+        out = jnp.concatenate([out, (cover_sum / jnp.clip(den, 1e-6, 1.0))[None]])
     return jnp.moveaxis(out, 0, -1), max_abs
 
 

@@ -40,7 +40,8 @@ every sample is its own pinhole-like ray through the layered scene:
    constant-depth image keeps its total away from the borders).
 4. The mirror layer's reflected radiance is read from its own sheets at its virtual depth and
    added without occlusion. With the mirrors' footprint (`Mirror`), each ray instead reads the
-   footprint m from sheets at the visible surface's depth, and traces the virtual scene (the
+   footprint m from sheets at the visible surface's depth, occluded like that surface's colour
+   (a blurred foreground in front of the mirror blocks the ray), and traces the virtual scene (the
    mirror's radiance at its virtual depth, a single-layer RGB-D with its own slices, occlusion
    and hidden-background estimate) like the surfaces; the virtual colour is renormalised over
    the rays weighted by their m and scaled by the mean m: each ray's own product (through the
@@ -209,9 +210,12 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
                              hidden),
                     len(lv))
     masked, extra = mirror is not None, None
-    if masked:  # the footprint on the visible surface's sheets, read like a reflection
+    if masked:
+        # the footprint on the visible surface's sheets, split like its colour in front of /
+        # behind each level (the first two channels of its sheets), read with its occlusion
         c0 = jnp.clip(coc_radius(depth, camera).astype(dtype), -window, window)
-        extra = (_split(_index(c0, lv, weights), len(lv)) * mirror.coverage[None])[..., None]
+        extra = _sheets([(mirror.coverage[..., None], _index(c0, lv, weights),
+                          jnp.ones(depth.shape, dtype))], len(lv))[..., :2]
         # and the virtual scene, its own single-layer RGB-D (with its occlusion)
         vstack = _sheets(_sources(mirror.radiance, mirror.depth, camera, None, None, window, lv,
                                   weights, hidden), len(lv))
@@ -219,7 +223,7 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
         c_r = jnp.clip(coc_radius(reflection_depth, camera).astype(dtype), -window, window)
         extra = _split(_index(c_r, lv, weights), len(lv))[..., None] * reflection[None]
     n_extra = 0 if extra is None else extra.shape[-1]
-    if n_extra:  # read along each ray without occlusion
+    if n_extra:  # read along each ray (the reflection without occlusion)
         stack = jnp.concatenate([stack, extra], -1)
     # the widest read is window * max|l| (+ the interpolation's taps) beyond the frame
     pts = lens_points(samples, blades, rotation, ratio)
@@ -244,9 +248,12 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
 
     zeros = jnp.zeros((height, width), dtype)
 
-    def along(stack, used, off, w_yx_all, n_extra):
-        """One ray through every slice of `stack`: its (colour, coverage, extra channels)."""
+    def along(stack, used, off, w_yx_all, n_extra, occluded=False):
+        """One ray through every slice of `stack`: its (colour, coverage, extra channels);
+        `occluded`: the two extra channels are one channel's parts in front of / behind each
+        level, seen like the colour's (one channel out), else each is added as read."""
         chans = stack.shape[-1]
+        n_out = 1 if occluded else n_extra
 
         def sheet(carry, x):
             # one slice, front to back along one ray: `hidden` is the coverage of the slices
@@ -281,10 +288,15 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
                 # minimum's half of each side.
                 scale = jnp.where(seen > room,
                                   room / jnp.maximum(seen, jnp.finfo(dtype).eps), 1.0)
+                if occluded:
+                    more = ((scale * t_front)[..., None] * g[..., 8:9]
+                            + (scale * t_behind)[..., None] * g[..., 9:10])
+                else:
+                    more = g[..., 8:8 + n_extra]
                 return (hidden + prev_cover, a_front + a_behind, a_front,
                         colour + (scale * t_front)[..., None] * g[..., 0:3]
                         + (scale * t_behind)[..., None] * g[..., 3:6],
-                        cover + scale * seen, extra + g[..., 8:8 + n_extra])
+                        cover + scale * seen, extra + more)
 
             def skip(_):  # an empty slice (no source within a spacing of its level): zeros
                 return hidden + prev_cover, zeros, zeros, colour, cover, extra
@@ -292,7 +304,7 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
             return jax.lax.cond(occupied, read, skip, None), None
 
         init = (zeros, zeros, zeros, jnp.zeros((height, width, 3), dtype), zeros,
-                jnp.zeros((height, width, n_extra), dtype))
+                jnp.zeros((height, width, n_out), dtype))
         (_, _, _, colour, cover, extra), _ = jax.lax.scan(sheet, init,
                                                            (stack, off, w_yx_all, used))
         return colour, cover, extra
@@ -300,7 +312,7 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     @jax.checkpoint  # reverse mode keeps one carry per lens point, recomputes the sheets
     def ray(carry, x):
         off, w = x
-        colour, cover, extra = along(stack, used, off, w, n_extra)
+        colour, cover, extra = along(stack, used, off, w, n_extra, occluded=masked)
         c_acc, v_acc, r_acc = carry
         if masked:
             # the ray sees the virtual scene as far as it passes through the mirror (its read
@@ -325,7 +337,10 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
         # is ~0 too), its tangent at most 1 / eps^2.
         eps = jnp.finfo(dtype).eps
         den = extra[..., 3:4]
-        out = out + extra[..., :3] * den / (den * den + eps * eps) * extra[..., 4:5] / samples
+        # (the rays' share through the mirror, renormalised like the colour where their
+        # coverage is short)
+        share = extra[..., 4:5] / jnp.clip(cover[..., None] / samples, eps, 1.0)
+        out = out + extra[..., :3] * den / (den * den + eps * eps) * share / samples
     elif n_extra:
         out = out + extra / samples
     return out

@@ -36,7 +36,9 @@
    for single-layer input, `dofjax.defocus(..., hidden=True)` passes an estimate of the hidden
    background made from the images alone (`_hidden.hidden_layers`) as such a layer. The mirror
    layer's reflected radiance is blurred at its virtual depth in the same slices and added on
-   top without occlusion (the mirror surface that carries it must not hide it).
+   top without occlusion (the mirror surface that carries it must not hide it). With the
+   mirrors' footprint (`Mirror`) the footprint is instead a fourth channel at the visible
+   surface's depth, occluded like the colour, that confines the virtual scene (`_defocus`).
 
 Kernels depend only on static choices (window, shape), so derivatives w.r.t. focus and aperture
 flow only through the slice weights. `sliced_defocus(...)` is pure and jittable (the window is
@@ -418,8 +420,8 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     coarse-grid kernel radius (px) a level is blurred with (`MIN_LOW_RADIUS`; larger is slower
     and closer to the exact full-resolution disc, inf blurs every level at full resolution).
     `mirror`: a `Mirror`: the image then has a fourth channel, the mirrors' footprint scattered
-    at the visible surface's depth without occlusion (the reflection itself is left out: the
-    caller confines the separately defocused virtual scene by it).
+    at the visible surface's depth and occluded like its colour (the reflection itself is left
+    out: the caller confines the separately defocused virtual scene by it).
     """
     levels = _levels(float(window))
     lay = _layout(float(window), blades, float(rotation), float(ratio), float(min_radius),
@@ -624,9 +626,10 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
     image come out too ((out, [d out, ...], res); else (out, [], res)).
     `residuals`: res is what `_composite_adjoint` needs of the value lane (else None).
     `cover`: the mirror footprint (Hp, Wp) or None (then `refl` must be None): the footprint is
-    also scattered at the visible surface's depth, without occlusion, and returned as a fourth
-    channel C of the image (and of its derivatives): the caller confines the separately
-    defocused virtual scene to the mirror by it (`_defocus`, step 6).
+    also scattered at the visible surface's depth, occluded and renormalised like its
+    colour (a blurred foreground in front of the mirror hides the reflection too), and
+    returned as a fourth channel C of the image (and of its derivatives): the caller confines
+    the separately defocused virtual scene to the mirror by it (`_defocus`, step 6).
     Every quantity is carried as lanes (value, then one tangent per direction): linear steps
     (resampling, blurs) act on each lane alike, products get the product rule.
     """
@@ -644,8 +647,10 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
     d_alpha = [t[1] for t in tangents]
     masked = cover is not None
     assert not (mirror and masked), "a footprint replaces the unconfined reflection"
-    # accumulated colour channels: surfaces (+ the reflection, or + the blurred footprint)
+    # accumulated colour channels: surfaces (+ the reflection, or + the blurred footprint); the
+    # first nt are seen through what is in front (the unconfined reflection is not)
     nc = 3 + 3 * mirror + masked
+    nt = 3 + masked
     run_ys = []  # per run: the value lane's (hiding, rgb_b, cov_b) of every slice, or None
     far_res = None
 
@@ -757,13 +762,13 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
             blurred = [blurred[i * k: (i + 1) * k] for i in range(n_lanes)]
             acc_rgb, acc_cov, hiding, hiding_next = state[0]
             rgb_b, cov_b, occ_b = blurred[0][:3]
+            if masked:  # the footprint, occluded like a colour channel
+                rgb_b = jnp.concatenate([rgb_b, blurred[0][3][None]])
             seen = 1.0 - hiding
             transmit = jnp.clip(seen, 0.0, 1.0)
             colour_b = transmit * rgb_b
             if mirror:
                 colour_b = jnp.concatenate([colour_b, blurred[0][3]])
-            if masked:
-                colour_b = jnp.concatenate([colour_b, blurred[0][3][None]])
             out = [(acc_rgb + colour_b, acc_cov + transmit * cov_b, hiding_next + occ_b,
                     hiding_next + cov_b)]
             if tangents:
@@ -771,11 +776,11 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
             for (d_rgb, d_cov, d_hiding, d_next), (d_rgb_b, d_cov_b, d_occ_b, *d_m) \
                     in zip(state[1:], blurred[1:]):
                 d_transmit = jnp.where(inside, -d_hiding, 0.0)
+                if masked:
+                    d_rgb_b = jnp.concatenate([d_rgb_b, d_m[0][None]])
                 d_colour_b = d_transmit * rgb_b + transmit * d_rgb_b
                 if mirror:
                     d_colour_b = jnp.concatenate([d_colour_b, d_m[0]])
-                if masked:
-                    d_colour_b = jnp.concatenate([d_colour_b, d_m[0][None]])
                 out.append((d_rgb + d_colour_b, d_cov + d_transmit * cov_b + transmit * d_cov_b,
                             d_next + d_occ_b, d_next + d_cov_b))
             # what the adjoint (`_composite_adjoint`) needs of this slice: the value lane's
@@ -829,39 +834,38 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
             s_back = s
         back = [_upsample(b, s_back // s_min) for b in back]
         far_res = (state[0][2], back[0])
-        # the far surfaces are seen through the fine runs; the reflection (channels 3:6) is not
+        # the far surfaces (and the footprint) are seen through the fine runs; the unconfined
+        # reflection (channels 3:6) is not
         d_transmit = [jnp.where(inside, -lane[2], 0.0) for lane in state[1:]]
         new = []
         for i, (lane, b) in enumerate(zip(state, back)):
             if i == 0:
-                seen_rgb, seen_cov = transmit * b[:3], transmit * b[nc]
+                seen_rgb, seen_cov = transmit * b[:nt], transmit * b[nc]
             else:
                 dt = d_transmit[i - 1]
-                seen_rgb = dt * back[0][:3] + transmit * b[:3]
+                seen_rgb = dt * back[0][:nt] + transmit * b[:nt]
                 seen_cov = dt * back[0][nc] + transmit * b[nc]
-            new.append((lane[0] + jnp.concatenate([seen_rgb, b[3:nc]]), lane[1] + seen_cov))
+            new.append((lane[0] + jnp.concatenate([seen_rgb, b[nt:nc]]), lane[1] + seen_cov))
         state = new
     acc_rgb, acc_cov = state[0][0], state[0][1]
     den = jnp.minimum(acc_cov[:height, :width], 1.0)
-    out = safe_div(acc_rgb[:3, :height, :width], den)
+    # the surfaces (and the blurred footprint, channel 3) renormalised where the coverage is
+    # below 1; the unconfined reflection added as it is
+    out = safe_div(acc_rgb[:nt, :height, :width], den)
     douts = []
     for d_rgb, d_cov, *_ in state[1:]:
         d_den = jnp.where(acc_cov[:height, :width] < 1.0, d_cov[:height, :width], 0.0)
-        d_out = safe_div(d_rgb[:3, :height, :width] - out * d_den, den)
+        d_out = safe_div(d_rgb[:nt, :height, :width] - out * d_den, den)
         if mirror:
             d_out = d_out + d_rgb[3:6, :height, :width]
-        if masked:  # the blurred footprint, channel 3
-            d_out = jnp.concatenate([d_out, d_rgb[3:4, :height, :width]])
         douts.append(jnp.moveaxis(d_out, 0, -1))
     if mirror:
         out = out + acc_rgb[3:6, :height, :width]
-    if masked:
-        out = jnp.concatenate([out, acc_rgb[3:4, :height, :width]])
     res = None
     if residuals:
         res = {"sources": (colour, q, alpha, refl if mirror else None, q_r if mirror else None,
                            cover),
-               "ys": run_ys, "far": far_res, "final": (acc_rgb[:3], acc_cov)}
+               "ys": run_ys, "far": far_res, "final": (acc_rgb[:nt], acc_cov)}
     return jnp.moveaxis(out, 0, -1), douts, res
 
 
@@ -935,10 +939,11 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
     factors, kernels, runs = lay.factors, lay.kernels, lay.runs
     hp, wp = lay.hp, lay.wp
     nc = 3 + 3 * mirror + masked
+    nt = 3 + masked  # the channels seen through what is in front (`_composite`)
     each = range(colour.shape[0])
     ct = jnp.moveaxis(ct, -1, 0).astype(dtype)
 
-    # out = acc_rgb[:3] / min(acc_cov, 1) (+ the reflection), cropped to the image
+    # out = acc_rgb[:nt] / min(acc_cov, 1) (+ the reflection), cropped to the image
     acc_rgb, acc_cov = res["final"]
     cov = acc_cov[:height, :width]
     den = jnp.minimum(cov, 1.0)
@@ -948,9 +953,8 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((0, hp - height), (0, wp - width)))
 
     # (with a footprint, ct has a fourth channel: the blurred footprint's)
-    g_rgb = frame(jnp.concatenate([safe_div(ct[:3], den)] + ([ct] if mirror else [])
-                                  + ([ct[3:4]] if masked else [])))
-    g_cov = frame(jnp.where(cov < 1.0, -_channel_sum(safe_div(ct[:3] * out, den)), 0.0))
+    g_rgb = frame(jnp.concatenate([safe_div(ct[:nt], den)] + ([ct] if mirror else [])))
+    g_cov = frame(jnp.where(cov < 1.0, -_channel_sum(safe_div(ct[:nt] * out, den)), 0.0))
 
     # the sources' cotangents, in the image frame (a run's slices reach the padded frame's
     # border too, but no source is there)
@@ -1016,12 +1020,13 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
             _, _, _, kernel, ((hiding, rgb_b, cov_b), has) = x
             seen = 1.0 - hiding
             transmit = jnp.clip(seen, 0.0, 1.0)
-            g_t = _channel_sum(g_rgb[:3] * rgb_b) + g_cov * cov_b
+            # (rgb_b: with the blurred footprint as a fourth channel, `masked`)
+            g_t = _channel_sum(g_rgb[:nt] * rgb_b) + g_cov * cov_b
             g_blurred = [transmit * g_rgb[:3], transmit * g_cov + g_next, g_hid]
             if mirror:
                 g_blurred.append(g_rgb[3:6])
             if masked:
-                g_blurred.append(g_rgb[3])
+                g_blurred.append(transmit * g_rgb[3])
             g_state = (g_rgb, g_cov, -jnp.where((seen > 0.0) & (seen < 1.0), g_t, 0.0),
                        g_hid + g_next)
             g_f = blur_t(g_blurred, kernel, has)
@@ -1067,14 +1072,14 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
     zero = jnp.zeros((hp, wp), dtype)
     g_hid, g_next = zero, zero
     if res["far"] is not None:
-        # acc += concat(transmit * back[:3], back[3:nc]), acc_cov += transmit * back[nc], with
-        # transmit = clip(1 - hiding of the fine runs)
+        # acc += concat(transmit * back[:nt], back[nt:nc]), acc_cov += transmit * back[nc],
+        # with transmit = clip(1 - hiding of the fine runs)
         hid_f, back = res["far"]
         seen = 1.0 - hid_f
         transmit = jnp.clip(seen, 0.0, 1.0)
-        g_t = _channel_sum(g_rgb[:3] * back[:3]) + g_cov * back[nc]
+        g_t = _channel_sum(g_rgb[:nt] * back[:nt]) + g_cov * back[nc]
         g_hid = -jnp.where((seen > 0.0) & (seen < 1.0), g_t, 0.0)
-        g_b = (jnp.concatenate([transmit * g_rgb[:3], g_rgb[3:nc]]), transmit * g_cov)
+        g_b = (jnp.concatenate([transmit * g_rgb[:nt], g_rgb[nt:nc]]), transmit * g_cov)
         far_runs = list(range(last_fine + 1, len(runs)))
         fs = [factors[runs[i][0]] for i in far_runs]
         # back = far[0] + up(far[1] + up(... far[-1])), upsampled to full resolution

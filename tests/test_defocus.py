@@ -287,6 +287,33 @@ def test_virtual_scene_is_defocused_with_its_own_occlusion(method):
     assert loose[22:26, 22:26].min() > 0.1
 
 
+@pytest.mark.parametrize("method", ["pyramid", "sliced", "lens"])
+def test_blurred_foreground_hides_the_reflection_as_it_hides_the_mirror(method):
+    # An in-focus mirror shows a textured virtual scene at its own depth: it must defocus exactly
+    # like a plain surface of that colour. A black foreground strip (c = +5 px) stands in front
+    # of the mirror's left part; its blur covers part of the lens there, and hides the
+    # reflection as much as it would hide the plain surface. (The footprint scattered without
+    # occlusion kept the full reflection under the foreground's blur: up to +0.4 too bright.)
+    n = 48
+    cam = camera(n)
+    colour = 0.2 + 0.6 * smooth_texture(n, seed=3)
+    c = np.zeros((n, n))
+    c[:, 10:20] = 5.0  # the foreground strip
+    depth = depth_for_coc(c, cam)
+    rgb = np.where((c > 0)[..., None], 0.0, colour)
+    cover = np.zeros((n, n))
+    cover[8:40, 16:40] = 1.0  # the mirror, partly behind the strip
+    cover[c > 0] = 0.0
+    mirror = dofjax.Mirror(coverage=cover, radiance=colour, depth=np.full((n, n), FOCUS))
+    kw = dict(_lens_kw(method), hidden=False)
+    plain = np.asarray(defocus(rgb, depth, cam, **kw))
+    out = np.asarray(defocus(rgb, depth, cam, mirror=mirror, **kw))
+    near = np.zeros((n, n), bool)
+    near[12:36, 20:23] = True  # mirror pixels under the strip's blur
+    assert plain[near].mean() < 0.8 * colour[near].mean()  # (the strip's blur is there)
+    np.testing.assert_allclose(out, plain, atol=1e-6)
+
+
 def test_mirror_in_an_rgbd_is_used_and_checked():
     n = 24
     cam = camera(n)
