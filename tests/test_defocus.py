@@ -293,7 +293,7 @@ def test_blurred_foreground_hides_the_reflection_as_it_hides_the_mirror(method):
     # like a plain surface of that colour. A black foreground strip (c = +5 px) stands in front
     # of the mirror's left part; its blur covers part of the lens there, and hides the
     # reflection as much as it would hide the plain surface. (The footprint scattered without
-    # occlusion kept the full reflection under the foreground's blur: up to +0.4 too bright.)
+    # occlusion kept the full reflection under the foreground's blur: up to 0.29 too bright.)
     n = 48
     cam = camera(n)
     colour = 0.2 + 0.6 * smooth_texture(n, seed=3)
