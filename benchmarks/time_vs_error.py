@@ -20,9 +20,10 @@ view; `SETTINGS` below gives the focus/aperture/shape settings of each). For eve
 - timing: median of --runs (>= 5) calls after one warm-up call, with the compile time (first call
   minus median) separate, `block_until_ready` on every result; defocus is reported alone and as a
   pipeline (sharp render + defocus), and forward + reverse-mode gradient of an image loss with
-  respect to (focus distance, aperture) (not for the lens method unless --lens-grad: its
-  compile is slow). Lens sampling is timed on the first setting of each scene (its cost does not
-  depend on focus or aperture) and its error measured on every setting.
+  respect to (focus distance, aperture) for the --grad-methods (default the sliced ones: the
+  others' gradient programs take 15 s and more to compile at every setting). Lens sampling is
+  timed on the first setting of each scene (its cost does not depend on focus or aperture) and
+  its error measured on every setting.
 - error: RMSE, PSNR and SSIM (scikit-image; data range 1 = white) against the truth, on linear
   colours (HDR values above 1 count fully).
 
@@ -155,13 +156,13 @@ def seed_function():
     return fn
 
 
-def variants(args) -> list[tuple[str, dict, int | None]]:
-    """(label, `dofjax.defocus` keywords, peeled layers K or None) of every defocus row: each
+def variants(args) -> list[tuple[str, str, int | None]]:
+    """(label, `--methods` token, peeled layers K or None) of every defocus row: each
     `--methods` token on single-layer RGB-D, and each token without "+hidden" on K peeled
     layers for every K in `--layers` (peeled layers replace the hidden-background estimate)."""
-    out = [(f"{token}, 1 layer", method_options(token), None) for token in args.methods]
+    out = [(f"{token}, 1 layer", token, None) for token in args.methods]
     for k in args.layers:
-        out += [(f"{token}, {k} layers", method_options(token), k)
+        out += [(f"{token}, {k} layers", token, k)
                 for token in args.methods if not token.endswith("+hidden")]
     return out
 
@@ -180,7 +181,8 @@ def defocus_rows(scene, cam, truth, setting, args) -> list[dict]:
     rows = []
     for sharp_spp in args.sharp_spp:
         renders = {}  # K -> (RGBD, time, compile): one render per layer count
-        for label, opts, layers in variants(args):
+        for label, token, layers in variants(args):
+            opts = method_options(token)
             if layers not in renders:
                 renders[layers] = timed(
                     lambda k=layers, n=sharp_spp: dofjax.render(scene, pcam, spp=n, layers=k),
@@ -191,7 +193,7 @@ def defocus_rows(scene, cam, truth, setting, args) -> list[dict]:
                                                             **shape),
                 args.runs)
             grad_time = grad_compile = None
-            if opts["method"] != "lens" or args.lens_grad:
+            if token in args.grad_methods:
                 # forward + reverse-mode gradient of an image loss w.r.t. (focus, aperture),
                 # through the jittable entry point with the window the forward call chose
                 f = dofjax.defocus_fn(rgbd, cam, window=max(max_abs_coc(rgbd, cam), 1.0),
@@ -433,8 +435,10 @@ def main(argv=None) -> int:
                    help="defocus methods: pyramid, sliced, lens, or METHOD+hidden (the "
                         "hidden-background estimate of single-layer input)")
     p.add_argument("--layers", default="3", help="peeled-layer counts K to try (default 3)")
-    p.add_argument("--lens-grad", action="store_true",
-                   help="also time the lens method's gradient (slow to compile)")
+    p.add_argument("--grad-methods", default="sliced,sliced+hidden",
+                   help="--methods tokens whose forward + gradient is timed (default "
+                        "sliced,sliced+hidden, the fitter's; each costs a compile per setting: "
+                        "15-25 s for the pyramid, more for the lens method)")
     p.add_argument("--scenes", default=",".join(SETTINGS), help="comma-separated scene names")
     p.add_argument("--out", default=str(HERE / "results"), help="output folder")
     p.add_argument("--cache", default=str(HERE / "results" / "cache"), help="ground-truth cache")
@@ -456,6 +460,7 @@ def main(argv=None) -> int:
     args.layers = [int(s) for s in args.layers.split(",") if s]
     args.sharp_spp = [int(s) for s in args.sharp_spp.split(",") if s]
     args.methods = [s for s in args.methods.split(",") if s]
+    args.grad_methods = [s for s in args.grad_methods.split(",") if s]
     for token in args.methods:
         try:
             method_options(token)
