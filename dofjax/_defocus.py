@@ -442,7 +442,9 @@ def _core(rgb, inv, alpha, refl, refl_inv, cover, focus_distance, aperture_radiu
     if config.mirror:
         out = out + refl_sum
     if config.masked:  # occluded like the colour, renormalised only where coverage is short
-        out = jnp.concatenate([out, (cover_sum / jnp.clip(den, 1e-6, 1.0))[None]])
+        # (a `where`, not a clip: at den == 1 exactly the tangent must not be halved)
+        short = jnp.where(den < 1.0, jnp.maximum(den, 1e-6), 1.0)
+        out = jnp.concatenate([out, (cover_sum / short)[None]])
     return jnp.moveaxis(out, 0, -1), max_abs
 
 

@@ -339,7 +339,8 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
         den = extra[..., 3:4]
         # (the rays' share through the mirror, renormalised like the colour where their
         # coverage is short)
-        share = extra[..., 4:5] / jnp.clip(cover[..., None] / samples, eps, 1.0)
+        seen = cover[..., None] / samples  # (a `where`: at exactly 1 no halved tangent)
+        share = extra[..., 4:5] / jnp.where(seen < 1.0, jnp.maximum(seen, eps), 1.0)
         out = out + extra[..., :3] * den / (den * den + eps * eps) * share / samples
     elif n_extra:
         out = out + extra / samples
