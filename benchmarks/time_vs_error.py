@@ -415,7 +415,7 @@ def headline_lines(results: list[dict]) -> list[str]:
                          "bound)")
         out.append(
             f"To match the error of **{method}**, lens sampling needs "
-            f"**{statistics.median(ratios):.1f}x** the time of render + defocus "
+            f"**{statistics.median(ratios):.2g}x** the time of render + defocus "
             f"(median over {len(ratios)} scene settings, range {min(ratios):.2g}x to "
             f"{max(ratios):.2g}x; {statistics.median(ratios_alone):.2g}x the defocus call "
             f"alone){'; ' + ', '.join(extra) if extra else ''}."
