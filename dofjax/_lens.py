@@ -288,14 +288,14 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
                 # minimum's half of each side.
                 scale = jnp.where(seen > room,
                                   room / jnp.maximum(seen, jnp.finfo(dtype).eps), 1.0)
+                # what the ray sees of the parts in front of / behind this level
+                w_front, w_behind = (scale * t_front)[..., None], (scale * t_behind)[..., None]
                 if occluded:
-                    more = ((scale * t_front)[..., None] * g[..., 8:9]
-                            + (scale * t_behind)[..., None] * g[..., 9:10])
+                    more = w_front * g[..., 8:9] + w_behind * g[..., 9:10]
                 else:
                     more = g[..., 8:8 + n_extra]
                 return (hidden + prev_cover, a_front + a_behind, a_front,
-                        colour + (scale * t_front)[..., None] * g[..., 0:3]
-                        + (scale * t_behind)[..., None] * g[..., 3:6],
+                        colour + w_front * g[..., 0:3] + w_behind * g[..., 3:6],
                         cover + scale * seen, extra + more)
 
             def skip(_):  # an empty slice (no source within a spacing of its level): zeros
