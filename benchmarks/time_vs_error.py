@@ -167,6 +167,15 @@ def variants(args) -> list[tuple[str, str, int | None]]:
     return out
 
 
+def _row(method, variant, kind, sharp_spp, t, c, t_render, c_render, out, truth,
+         grad_time=None, grad_compile=None) -> dict:
+    """One table row of a post-process: its time alone and as a pipeline after the render."""
+    return dict(method=method, variant=variant, kind=kind, sharp_spp=sharp_spp, time=t,
+                compile=c, render_time=t_render, render_compile=c_render,
+                pipeline_time=t_render + t, grad_time=grad_time, grad_compile=grad_compile,
+                **metrics(out, truth))
+
+
 def defocus_rows(scene, cam, truth, setting, args) -> list[dict]:
     """Every defocus variant at every `--sharp-spp`, each from a sharp render with a guard band
     of the frame's largest |c| + 2 px (`Camera.padded`, `defocus(..., margin=)`): the blur then
@@ -206,11 +215,9 @@ def defocus_rows(scene, cam, truth, setting, args) -> list[dict]:
 
                 _, grad_time, grad_compile, _ = timed(lambda g=loss_and_grad: g(d0, a0),
                                                       args.runs)
-            rows.append(dict(method=f"{label}, sharp {sharp_spp} spp", variant=label,
-                             kind="defocus", sharp_spp=sharp_spp, time=t_fwd,
-                             compile=c_fwd, render_time=t_render, render_compile=c_render,
-                             pipeline_time=t_render + t_fwd, grad_time=grad_time,
-                             grad_compile=grad_compile, **metrics(out, truth)))
+            rows.append(_row(f"{label}, sharp {sharp_spp} spp", label, "defocus", sharp_spp,
+                             t_fwd, c_fwd, t_render, c_render, out, truth, grad_time,
+                             grad_compile))
         rgbd, t_render, c_render = renders[None]
         if rgbd.mirror is not None and sharp_spp == max(args.sharp_spp):
             # The seed's listed inaccuracy: reflected light blurred at the mirror's depth.
@@ -219,21 +226,15 @@ def defocus_rows(scene, cam, truth, setting, args) -> list[dict]:
                 lambda: dofjax.defocus(rgbd.rgb, rgbd.depth, cam, margin=margin, **opts,
                                        **shape), args.runs)
             label = f"{args.methods[0]}, 1 layer, mirrors at their own depth"
-            rows.append(dict(method=f"{label}, sharp {sharp_spp} spp", variant=label,
-                             kind="defocus", sharp_spp=sharp_spp, time=t_fwd, compile=c_fwd,
-                             render_time=t_render, render_compile=c_render,
-                             pipeline_time=t_render + t_fwd, grad_time=None, grad_compile=None,
-                             **metrics(out, truth)))
+            rows.append(_row(f"{label}, sharp {sharp_spp} spp", label, "defocus", sharp_spp,
+                             t_fwd, c_fwd, t_render, c_render, out, truth))
     # the seed's algorithm as written (no guard band, pixel-centre sharp input: as the seed did)
     rgbd, t_render, _, _ = timed(lambda: dofjax.render(scene, cam), args.runs)
     rgb, depth = np.asarray(rgbd.rgb), np.asarray(rgbd.depth)
     seed = seed_function()
     out, t_fwd, c_fwd, _ = timed(lambda: seed(rgb, depth, cam), args.runs)
-    rows.append(dict(method="seed (Yu 2004, as written)", variant="seed", kind="seed",
-                     sharp_spp=1, time=t_fwd,
-                     compile=c_fwd, render_time=t_render, render_compile=None,
-                     pipeline_time=t_render + t_fwd, grad_time=None, grad_compile=None,
-                     **metrics(out, truth)))
+    rows.append(_row("seed (Yu 2004, as written)", "seed", "seed", 1, t_fwd, c_fwd, t_render,
+                     None, out, truth))
     return rows
 
 
