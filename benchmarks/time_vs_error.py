@@ -436,10 +436,10 @@ def main(argv=None) -> int:
                    help="defocus methods: pyramid, sliced, lens, or METHOD+hidden (the "
                         "hidden-background estimate of single-layer input)")
     p.add_argument("--layers", default="3", help="peeled-layer counts K to try (default 3)")
-    p.add_argument("--grad-methods", default="sliced,sliced+hidden",
-                   help="--methods tokens whose forward + gradient is timed (default "
-                        "sliced,sliced+hidden, the fitter's; each costs a compile per setting: "
-                        "15-25 s for the pyramid, more for the lens method)")
+    p.add_argument("--grad-methods", default=None,
+                   help="--methods tokens whose forward + gradient is timed (default: sliced and "
+                        "sliced+hidden where listed, the fitter's; each costs a compile per "
+                        "setting: 15-25 s for the pyramid, more for the lens method)")
     p.add_argument("--scenes", default=",".join(SETTINGS), help="comma-separated scene names")
     p.add_argument("--out", default=str(HERE / "results"), help="output folder")
     p.add_argument("--cache", default=str(HERE / "results" / "cache"), help="ground-truth cache")
@@ -458,15 +458,24 @@ def main(argv=None) -> int:
         print("\n".join(h.replace("**", "") for h in headline))
         return 0
     args.spps = [int(s) for s in args.spps.split(",")]
+    if len(set(args.spps)) < 2:
+        p.error(f"--spps: at least two sample counts (the lens-sampling curve), got {args.spps}")
     args.layers = [int(s) for s in args.layers.split(",") if s]
     args.sharp_spp = [int(s) for s in args.sharp_spp.split(",") if s]
     args.methods = [s for s in args.methods.split(",") if s]
-    args.grad_methods = [s for s in args.grad_methods.split(",") if s]
     for token in args.methods:
         try:
             method_options(token)
         except ValueError as e:
             p.error(f"--methods: {e}")
+    if args.grad_methods is None:  # the sliced ones among --methods
+        args.grad_methods = [t for t in args.methods if t in ("sliced", "sliced+hidden")]
+    else:
+        args.grad_methods = [s for s in args.grad_methods.split(",") if s]
+        for token in args.grad_methods:
+            if token not in args.methods:
+                p.error(f"--grad-methods: {token!r} is not one of --methods "
+                        f"({','.join(args.methods)})")
     args.scenes = [s for s in args.scenes.split(",") if s]
     if args.runs < 5:
         p.error(f"--runs must be >= 5 (median of at least 5 timed runs), got {args.runs}")
