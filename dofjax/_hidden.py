@@ -9,8 +9,10 @@ foreground over the gap. Plain reductions, shifts and reshapes only: everything 
 
 from __future__ import annotations
 
+import functools
 import math
 
+import jax
 import jax.numpy as jnp
 
 from ._kernels import down2, up2
@@ -73,15 +75,19 @@ def _pull_push(values, weight):
 
 
 def _local_min(x, radius: int):
-    """Exact min over the (2 radius + 1)^2 neighbourhood (edges: clipped), by shifts."""
+    """Exact min over the (2 radius + 1)^2 neighbourhood (edges: clipped), by shifts: along
+    rows, then along columns (a square's min is separable)."""
     h, w = x.shape
     big = jnp.finfo(x.dtype).max
-    xp = jnp.pad(x, radius, constant_values=big)
+    xp = jnp.pad(x, ((0, 0), (radius, radius)), constant_values=big)
     m = x
+    for dx in range(2 * radius + 1):
+        m = jnp.minimum(m, xp[:, dx: dx + w])
+    mp = jnp.pad(m, ((radius, radius), (0, 0)), constant_values=big)
+    out = m
     for dy in range(2 * radius + 1):
-        for dx in range(2 * radius + 1):
-            m = jnp.minimum(m, xp[dy: dy + h, dx: dx + w])
-    return m
+        out = jnp.minimum(out, mp[dy: dy + h])
+    return out
 
 
 def hidden_layer(rgb_c, c, window: float):
@@ -111,6 +117,9 @@ def hidden_layer(rgb_c, c, window: float):
     return fill[:3], fill[3], h
 
 
+# jitted: `defocus_fn` makes it once, outside any jit (op by op it took 22 ms at 64 x 64,
+# jitted 0.1 ms; 512 x 512: ~16 ms jitted, half a sliced forward pass)
+@functools.partial(jax.jit, static_argnames=("window",))
 def hidden_layers(rgb, depth, window: float, reflection=None):
     """Single-layer RGB-D: `hidden_layer`'s estimate from the depth alone, as peeled layers.
 

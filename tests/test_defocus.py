@@ -388,6 +388,29 @@ def test_rgbd_dispatch_jit_and_vmap():
         np.testing.assert_allclose(np.asarray(batch[i]), np.asarray(one), atol=1e-12)
 
 
+@pytest.mark.parametrize("method", ["pyramid", "sliced", "lens"])
+def test_eager_call_is_one_program_equal_to_the_traced_body(method):
+    # an eager `defocus` runs as one jitted program (`_run_pooled`), a traced one inlines the
+    # same body: equal images, and a new focus or aperture reuses the eager program
+    from dofjax._defocus import _run_pooled
+
+    n, m = 20, 2
+    cam = camera(n, aperture=0.3)
+    rng = np.random.default_rng(12)
+    rgb = rng.random((n + 2 * m, n + 2 * m, 3))
+    depth = np.where(rng.random((n + 2 * m, n + 2 * m)) < 0.5, 1.5, 3.0)
+    kw = dict(window=4, margin=m, hidden=True, **_lens_kw(method))
+    eager = np.asarray(defocus(rgb, depth, cam, **kw))
+    traced = np.asarray(jax.jit(lambda c: defocus(rgb, depth, c, **kw))(cam))
+    assert eager.shape == (n, n, 3)
+    np.testing.assert_allclose(eager, traced, atol=1e-10)
+    size = _run_pooled._cache_size()
+    other = np.asarray(defocus(rgb, depth, cam.replace(focus_distance=2.5, aperture_radius=0.2),
+                              **kw))
+    assert _run_pooled._cache_size() == size
+    assert np.abs(other - eager).max() > 1e-3
+
+
 def test_float32_matches_float64():
     n = 32
     cam = camera(n)
