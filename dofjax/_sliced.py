@@ -20,7 +20,9 @@
    and blur method (compiles in seconds; reverse mode stores one carry per slice; a
    `lax.switch` on the level's kernel inside the scan pays each level only its own taps; the
    kernels are host constants, so a disc's zero corner taps are skipped and its equal taps
-   share one multiplication). Slice p is
+   share one multiplication; a `lax.cond` skips the slices that no source reaches, found from
+   the range of the sources' q before the scans (`_reached`), so a camera whose CoCs span a
+   few of the window's levels pays for those few). Slice p is
    attenuated by the blurred coverage of every slice nearer than p - 1, and by slice p - 1's
    sources in front of level p - 1 fully and those a fraction t of the way from level p - 1 to
    p by (1 - t): occlusion is continuous in c (a source crossing a level never switches its
@@ -581,10 +583,12 @@ class _Layout(NamedTuple):
         return x[..., o: x.shape[-2] - o, o: x.shape[-1] - o]
 
     def level_table(self, i_run: int, dtype):
-        """Per level of the run: its q and its neighbours' (q_prev, q_p, q_next; the outermost
-        levels' missing neighbour one past them), and whether it is the first or last level."""
+        """Per level of the run (every level: `i_run` None): its q and its neighbours' (q_prev,
+        q_p, q_next; the outermost levels' missing neighbour one past them), and whether it is
+        the first or last level."""
         q_lv = np.sign(self.levels) * self.levels * self.levels
-        n, ps = len(self.levels), self.runs[i_run]
+        n = len(self.levels)
+        ps = range(n) if i_run is None else self.runs[i_run]
         q3 = np.array([(q_lv[max(p - 1, 0)] + (p == 0), q_lv[p],
                         q_lv[min(p + 1, n - 1)] - (p == n - 1)) for p in ps])
         return (jnp.asarray(q3, dtype), jnp.asarray([p == 0 for p in ps]),
@@ -653,6 +657,7 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
     nt = 3 + masked
     run_ys = []  # per run: the value lane's (hiding, rgb_b, cov_b) of every slice, or None
     far_res = None
+    reached = _reached(q, alpha, q_r, lay, dtype)
 
     def run(state, i_run):
         """Composite the levels of run `i_run` (one resolution) front to back onto `state`
@@ -691,7 +696,7 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
             refl_p, q_r_p = padded(refl), padded(q_r)
         if masked:
             cover_p = padded(cover)
-        xs = lay.level_table(i_run, dtype) + (ks,)
+        xs = lay.level_table(i_run, dtype) + (ks, reached[np.asarray(ps)])
         each = range(colour.shape[0])
 
         def slice_parts(weight, occ):
@@ -703,6 +708,21 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
                     sum(occ[k] for k in each)]
 
         def body(state, x):
+            *x, has = x
+            return jax.lax.cond(has, full, empty, state, tuple(x))
+
+        def empty(state, x):
+            """A slice no source reaches: nothing to add, and it hides nothing; what hid the
+            previous slices hides the next one (`composite` with zero fields)."""
+            new = tuple((rgb, cov, hiding_next, hiding_next)
+                        for rgb, cov, _, hiding_next in state)
+            ys = None
+            if residuals:
+                ys = ((state[0][2], jnp.zeros_like(state[0][0][:nt]),
+                       jnp.zeros_like(state[0][1])), jnp.asarray(False))
+            return new, ys
+
+        def full(state, x):
             q3, first, last, kernel = x
             q3 = (q3[0], q3[1], q3[2])
             # source by source, as (H, W) arrays summed written out: on the stacked (S, H, W)
@@ -867,6 +887,27 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
                            cover),
                "ys": run_ys, "far": far_res, "final": (acc_rgb[:nt], acc_cov)}
     return jnp.moveaxis(out, 0, -1), douts, res
+
+
+def _reached(q, alpha, q_r, lay: _Layout, dtype):
+    """(levels,) bool: whether any source (coverage > 0) or the unconfined reflection's
+    radiance can reach each level's slice, from the range of their q (two reductions per
+    source; a level between two reached ones counts as reached). The composite skips the other
+    slices (their weights, blurs and tangents are zero: the result is the same), so a camera
+    whose CoCs span a few of the window's levels pays for those few."""
+    big = jnp.asarray(jnp.finfo(dtype).max, dtype)
+    on = alpha > 0.0
+    lo = jnp.min(jnp.where(on, q, big), axis=(-2, -1))
+    hi = jnp.max(jnp.where(on, q, -big), axis=(-2, -1))
+    if q_r is not None:
+        lo = jnp.concatenate([lo, jnp.min(q_r)[None]])
+        hi = jnp.concatenate([hi, jnp.max(q_r)[None]])
+    q3, first, last = lay.level_table(None, dtype)
+    # a source reaches level p when its q lies strictly between the neighbouring levels'
+    # (the outermost levels: anything beyond them)
+    front = first[:, None] | (lo[None] < q3[:, :1])
+    back = last[:, None] | (hi[None] > q3[:, 2:])
+    return jnp.any(front & back & (lo <= hi)[None], axis=1)
 
 
 def _box_transpose(g, s: int):

@@ -524,3 +524,49 @@ def test_hidden_layers_behind_a_sharp_surface_change_nothing():
                                         layers=jax.tree_util.tree_map(
                                             lambda a: jnp.asarray(a, dtype), layers)))
         np.testing.assert_allclose(out, rgb, atol=1e-5)
+
+
+@pytest.mark.parametrize("extras", [(), ("layers", "masked"), ("mirror",)])
+def test_skipping_unreached_slices_changes_nothing(extras, monkeypatch):
+    # sources behind the focal plane only, in a narrow band of depths, under a 12 px window:
+    # most of its slices are reached by no source and skipped (`_reached`); the image, the
+    # written-out Jacobian and the adjoint must equal those with every slice composited
+    import dofjax._sliced as sliced_mod
+
+    n = 40
+    cam = camera(width=n, height=n, aperture_radius=0.3)
+    rgb, depth, kw = _random_sources(n, extras, cam, 15)
+    depth = np.clip(depth, 2.5, 3.5)  # |c| ~ 2.2-3.4 px behind the focal plane (d = 2)
+    if "layers" in kw:
+        lay_in = kw["layers"]
+        kw["layers"] = dofjax.Layers(rgb=lay_in.rgb, alpha=lay_in.alpha, depth=np.concatenate(
+            [depth[None], np.clip(np.asarray(lay_in.depth[1:]), 3.0, 4.0)]))
+    if "reflection_depth" in kw:
+        kw["reflection_depth"] = np.clip(kw["reflection_depth"], 2.5, 3.5)
+    kw.update(window=12)
+
+    def run():
+        out, jac, res = sliced_defocus_jacobian(rgb, depth, cam, residuals=True, **kw)
+        ct = np.random.default_rng(16).standard_normal(out.shape)
+        return out, np.stack(jac, -1), sliced_defocus_adjoint(res, ct, window=12)
+
+    levels = sliced_mod._levels(12.0)
+    lay = sliced_mod._layout(12.0, None, 0.0, 1.0, sliced_mod.MIN_LOW_RADIUS, n, n)
+    colour, q, alpha, refl, q_r, _, _ = sliced_mod._source_fields(
+        jnp.asarray(rgb), jnp.asarray(depth), kw.get("layers"), cam, levels,
+        kw.get("reflection"), kw.get("reflection_depth"), lay, kw.get("mirror"))
+    reached = np.asarray(sliced_mod._reached(q, alpha, q_r, lay, q.dtype))
+    # levels +12 ... 0 ... -12: every front level and the far ones beyond the band are skipped
+    # (the padded frame's border, q 0 and coverage 0, reaches nothing; the unconfined
+    # reflection's q spans the frame, 0 on the border, so it reaches level 0)
+    assert not reached[: len(levels) // 2].any() and reached.sum() <= 5
+    assert reached.sum() >= 2
+    got = run()
+    monkeypatch.setattr(sliced_mod, "_reached",
+                        lambda q, alpha, q_r, lay, dtype: jnp.ones(len(lay.levels), bool))
+    jax.clear_caches()
+    want = run()
+    jax.clear_caches()
+    for g, w in zip(got, want):
+        np.testing.assert_allclose(g, w, rtol=0, atol=1e-12 * max(1.0, float(np.abs(w).max())))
+    assert np.abs(want[1]).max() > 1e-3
