@@ -496,17 +496,21 @@ def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blade
                     rotation, ratio, hidden, mirror)
 
 
-@partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio", "method", "samples",
-                                   "hidden", "s", "margin"))
-def _run_pooled(rgb, depth, camera, reflection, reflection_depth, layers, mirror, *, window,
-                blades, rotation, ratio, method, samples, hidden, s, margin):
+def _run_and_pool(rgb, depth, camera, reflection, reflection_depth, layers, mirror, *, window,
+                  blades, rotation, ratio, method, samples, hidden, s, margin):
     """`_run`'s image box-averaged to the camera's pixels (`s`) and cropped to the guard band
-    (`margin`). Jitted for eager `defocus` calls: run op by op, the wrappers around the jitted
-    cores (the sliced method's hidden-background estimate, its derivative routing, the pooling)
-    cost 0.2-2 ms per call at 64 x 64 and 10-40 ms at 512 x 512 (benchmarks/README.md)."""
+    (`margin`): the image `defocus` and `defocus_fn` return."""
     out, _ = _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blades,
                   rotation, ratio, method, samples, hidden, mirror)
     return box_pool(out, s)[_crop(margin)]
+
+
+# Jitted for eager `defocus` calls: run op by op, the wrappers around the jitted cores (the
+# sliced method's hidden-background estimate, its derivative routing, the pooling) cost
+# 0.2-2 ms per call at 64 x 64 and 10-40 ms at 512 x 512 (benchmarks/README.md).
+_run_pooled = partial(jax.jit, static_argnames=(
+    "window", "blades", "rotation", "ratio", "method", "samples", "hidden", "s", "margin"))(
+        _run_and_pool)
 
 
 def _sliced(rgb, depth, camera, reflection, reflection_depth, layers, window, blades, rotation,
@@ -812,7 +816,7 @@ def defocus(
                   samples=samples, hidden=hidden, s=s, margin=margin)
     # an eager call runs as one program; under a trace (jit, vmap, autodiff, the fitter's
     # model) the caller's program takes the body as it is
-    run = _run_pooled if concrete else _run_pooled.__wrapped__
+    run = _run_pooled if concrete else _run_and_pool
     out = run(rgb, depth, camera, reflection, reflection_depth, layers, mirror, **static)
     if return_info:
         n = (len(lens_levels(win)) if method == "lens"
@@ -870,7 +874,6 @@ def defocus_fn(
      hidden, mirror) = _inputs("defocus_fn", rgb, depth, camera, reflection, reflection_depth,
                                layers, method, shape, blades, rotation, ratio, samples, margin,
                                hidden, mirror)
-    crop = _crop(margin)
     if window is None:
         c = np.abs(np.asarray(jnp.asarray(_coc_host(depth, camera)))) / s
         window = max(2.0 * float(c.max()), 1.0)
@@ -886,10 +889,10 @@ def defocus_fn(
         return camera.replace(focus_distance=focus_distance, aperture_radius=aperture_radius)
 
     def f(focus_distance, aperture_radius):
-        out, _ = _run(rgb, depth, _cam(focus_distance, aperture_radius), reflection,
-                      reflection_depth, layers, win, blades, rotation, ratio, method, samples,
-                      hidden, mirror)
-        return box_pool(out, s)[crop]
+        return _run_and_pool(rgb, depth, _cam(focus_distance, aperture_radius), reflection,
+                             reflection_depth, layers, mirror, window=win, blades=blades,
+                             rotation=rotation, ratio=ratio, method=method, samples=samples,
+                             hidden=hidden, s=s, margin=margin)
 
     def max_abs_coc(focus_distance, aperture_radius):
         inv = inverse_depth(depth)
