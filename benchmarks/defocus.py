@@ -124,9 +124,9 @@ def accuracy(size: int, spp: int, max_coc: float, layers: int, seed: int):
         # noise floor: a second, independent reference
         ref2 = dofjax.render_reference(scene, cam, spp=spp, key=jax.random.key(seed + 1))
         name = os.path.splitext(os.path.basename(path))[0]
-        with_layers = dofjax.defocus(sharp, cam)
+        with_layers = dofjax.defocus(sharp, cam, method="pyramid")
         single = dofjax.defocus(sharp.rgb, sharp.depth, cam, reflection=sharp.reflection,
-                                reflection_depth=sharp.reflection_depth)
+                                reflection_depth=sharp.reflection_depth, method="pyramid")
         sliced_layers = dofjax.defocus(sharp, cam, method="sliced")
         sliced_single = dofjax.defocus(sharp.rgb, sharp.depth, cam, reflection=sharp.reflection,
                                        reflection_depth=sharp.reflection_depth, method="sliced")

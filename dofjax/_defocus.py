@@ -1,8 +1,11 @@
 """Depth-of-field from sharp RGB-D: the differentiable, occlusion-aware soft-disc defocus.
 
-DESIGN.md section 3 defines what is computed; this module is how.
+DESIGN.md section 3 defines what is computed; this module is how, for method "pyramid", and the
+entry points of all three methods. The default method, "sliced" (`_sliced.py`: the same scatter
+model built for speed, with written-out derivatives; the fitter's model), runs at ~3x one FFT
+convolution at 512x512 where the pyramid takes 30-80x and minutes to compile under `jacfwd`.
 
-Algorithm (a layered pyramid):
+Algorithm of method "pyramid" (a layered pyramid):
 
 1. Every source pixel q (of every layer) has a signed CoC c(q) = A k (1/z - 1/d) (`coc_radius`)
    and a smoothly floored kernel radius rho = sqrt(c^2 + R0^2), R0 = 0.5 px.
@@ -607,7 +610,7 @@ def as_mirror(name: str, mirror, dtype) -> Mirror | None:
 
 def check_hidden(name: str, hidden, method: str, layers=None) -> bool:
     """The hidden-background estimate's switch: None is the method's default (on for "pyramid"
-    and "lens", off for "sliced", where it costs ~1.5x the forward pass); True needs
+    and "lens", off for "sliced", the default, so that it is the fitter's model); True needs
     single-layer input (peeled layers are the real hidden surfaces)."""
     if hidden is None:
         return method != "sliced"
@@ -698,7 +701,7 @@ def defocus(
     mirror: Mirror | None = None,
     window: float | None = None,
     return_info: bool = False,
-    method: str = "pyramid",
+    method: str = "sliced",
     samples: int | None = None,
     margin: int = 0,
     hidden: bool | None = None,
@@ -732,12 +735,16 @@ def defocus(
             8, 12, ..., 128); |c| beyond it is clamped to it. None: chosen from the image (host
             check; not possible under jit). Give it to call `defocus` inside `jax.jit`/`vmap`.
         return_info: also return a `DefocusInfo`.
-        method: "pyramid" (the layered pyramid above), "sliced" (`_sliced.py`: depth slices
-            composited by FFT products in one `lax.scan`; compiles in seconds, the fitter's
-            default) or "lens" (`_lens.py`: the same slices read along `LENS_SAMPLES` rays per
-            pixel through points of the aperture, occlusion decided per ray: closest to the
-            lens-sampling reference behind blurred edges, and ~3000x slower than "sliced").
-            All implement the scatter model of DESIGN.md section 3.
+        method: "sliced" (default; `_sliced.py`: depth slices, coarse ones at reduced
+            resolution, composited in `lax.scan`s with written-out derivatives; ~3x one FFT
+            convolution, compiles in seconds; the fitter's default model, so a target made by
+            a bare `defocus` call is the model a bare `fit_focus` fits), "pyramid" (the
+            layered pyramid above: 30-80x slower, minutes to compile under `jacfwd`/`grad`;
+            every level of |c| <= 4 at full resolution, so a constant depth up to 4 px is one
+            convolution) or "lens" (`_lens.py`: the same slices read along `LENS_SAMPLES`
+            rays per pixel through points of the aperture, occlusion decided per ray: closest
+            to the lens-sampling reference behind blurred edges, and ~3000x slower than
+            "sliced"). All implement the scatter model of DESIGN.md section 3.
         margin: the sharp input covers this many px beyond the frame on every side (rendered
             with `camera.padded(margin)`); the result is cropped to the camera's frame. The
             blur then gathers what lies just outside the frame, as a lens does: with a margin
@@ -750,10 +757,13 @@ def defocus(
             foreground edges (pull-push fill of the locally farthest pixels), so a blurred
             foreground edge uncovers something instead of stretching over the gap. None: the
             method's default, on for "pyramid" and "lens" (which re-estimate it from the CoC
-            at every camera) and off for "sliced", where it is made once from the images
-            (`_hidden.hidden_layers`) and blurred as a second layer: ~1.5x the forward pass
-            (on quads.json, single-layer RMSE against the lens-sampling reference 0.0212 ->
-            0.0149; benchmarks/README.md). True with `layers` is an error.
+            at every camera) and off for "sliced", where it is made from the images alone
+            (`_hidden.hidden_layers`: by every `defocus` call, once by `defocus_fn`) and
+            blurred as a second layer. That costs ~1.3x the forward pass plus the estimate
+            (an eager 256x256 call 10.8 -> 19.7 ms) and takes the single-layer RMSE against
+            the lens-sampling reference on quads.json from 0.0212 to 0.0149 (the pyramid's
+            0.0145; benchmarks/README.md). Off by default so that the default `defocus` is the
+            fitter's default model. True with `layers` is an error.
 
     Returns:
         (H, W, 3) defocused linear colour (and the info when asked).
@@ -838,7 +848,7 @@ def defocus_fn(
     reflection: ArrayLike | None = None,
     reflection_depth: ArrayLike | None = None,
     layers: Layers | None = None,
-    method: str = "pyramid",
+    method: str = "sliced",
     samples: int | None = None,
     margin: int = 0,
     hidden: bool | None = None,
@@ -846,9 +856,9 @@ def defocus_fn(
 ):
     """A pure, jittable `f(focus_distance, aperture_radius) -> (H, W, 3)` for fitting.
 
-    `method` is "pyramid", "sliced" or "lens", `samples` the lens method's points per pixel,
-    `margin` the sharp input's guard band and `hidden` the hidden-background estimate, as in
-    `defocus` (the sliced method's is made here, once).
+    `method` is "sliced" (default), "pyramid" or "lens", `samples` the lens method's points per
+    pixel, `margin` the sharp input's guard band and `hidden` the hidden-background estimate, as
+    in `defocus` (the sliced method's is made here, once).
 
     The image, depth, field of view and shape are validated once here (host) and closed over;
     `f` runs only the jitted defocus core with a fixed window, so it can be `jax.jit`-ed,

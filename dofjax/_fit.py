@@ -1732,16 +1732,16 @@ def fit_focus(
             defocus clamps). The multi-start level uses window / 2^L.
         defocus_options: shape/blades/rotation/ratio/method/samples/hidden passed to
             `dofjax.defocus` ({"hidden": True}: the hidden-background estimate of single-layer
-            input also for "sliced", ~1.5x its cost per step). The
-            fit's method defaults to "sliced" while `dofjax.defocus` defaults to "pyramid": a
-            target made with a bare `dofjax.defocus(...)` is a model mismatch for a bare fit
-            (on quads.json at 256 px, d 3.95 instead of 4.0 at loss 9e-5); pass the same
-            method to both. For photographs (or lens-sampled targets) of an RGBD with peeled
+            input also for "sliced", ~1.5x its cost per step). The defaults are
+            `dofjax.defocus`'s ("sliced", no hidden-background estimate), so a target made
+            with a bare `dofjax.defocus(...)` is the model a bare fit fits; pass the same
+            options to both. For photographs (or lens-sampled targets) of an RGBD with peeled
             layers, {"method": "lens"} is the model closest to a real lens (relative mismatch
-            at the true camera 0.022 vs the sliced model's 0.035, median of the lens-reference
-            cases in benchmarks/README.md); it polishes only: the multi-start, scan and screen
-            run with "sliced" (same shape options), and the lens model takes the pair they
-            pick to its own minimum. {"method": "lens", "samples": 64} polishes ~3.5x faster.
+            at the true camera 0.022 vs the sliced model's 0.035, median of the
+            lens-reference cases in benchmarks/README.md); it polishes only: the multi-start,
+            scan and screen run with "sliced" (same shape options), and the lens model takes
+            the pair they pick to its own minimum. {"method": "lens", "samples": 64} polishes
+            ~3.5x faster.
         model: a forward model `model(rgb, depth, camera) -> (H, W, 3)`, pure and jittable, used
             instead of dofjax's defocus at every level (window/defocus_options are then ignored).
             Pass the same (hashable) object again to reuse the compiled program.

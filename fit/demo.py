@@ -47,7 +47,8 @@ def main(argv=None) -> None:
     t0 = time.perf_counter()
     sharp = dofjax.render(scene, camera)
     true_cam = camera.replace(focus_distance=a.focus, aperture_radius=a.aperture)
-    target = dofjax.defocus(sharp.rgb, sharp.depth, true_cam, window=a.window, method="sliced")
+    # the default method ("sliced") is fit_focus's default model
+    target = dofjax.defocus(sharp.rgb, sharp.depth, true_cam, window=a.window)
     target = target + a.noise * jax.random.normal(jax.random.key(a.seed), target.shape,
                                                   target.dtype)
     t1 = time.perf_counter()

@@ -63,7 +63,7 @@ def test_constant_depth_at_a_level_equals_brute_force_scatter(c):
     cam = camera(n)
     rgb = smooth_texture(n, 1)
     depth = np.full((n, n), depth_for_coc(c, cam))
-    out = np.asarray(defocus(rgb, depth, cam))
+    out = np.asarray(defocus(rgb, depth, cam, method="pyramid"))  # sliced: tests/test_sliced.py
     ref = brute_scatter(rgb, np.full((n, n), c))
     m = 6  # away from the borders (we renormalise there, the scatter loses energy)
     np.testing.assert_allclose(out[m:-m, m:-m], ref[m:-m, m:-m], atol=1e-10)
@@ -76,7 +76,7 @@ def test_smooth_depth_ramp_close_to_brute_force_scatter():
     cam = camera(n)
     rgb = smooth_texture(n, 2)
     c = np.linspace(-0.5, -7.0, n)[None, :].repeat(n, 0)
-    out = np.asarray(defocus(rgb, depth_for_coc(c, cam), cam))
+    out = np.asarray(defocus(rgb, depth_for_coc(c, cam), cam, method="pyramid"))
     ref = brute_scatter(rgb, c)
     m = 8
     err = (out - ref)[m:-m, m:-m]
@@ -151,7 +151,8 @@ def test_blurred_near_object_spreads_over_sharp_background():
     rgb[14:26, 14:26] = [0.0, 0.0, 1.0]
     c = np.zeros((n, n))
     c[14:26, 14:26] = 5.0
-    out = np.asarray(defocus(rgb, depth_for_coc(c, cam), cam))
+    # the pyramid's hidden-background estimate is on by default (sliced: tests/test_sliced.py)
+    out = np.asarray(defocus(rgb, depth_for_coc(c, cam), cam, method="pyramid"))
     assert out[20, 11, 2] > 0.15  # blue halo over the sharp background, 3 px outside
     np.testing.assert_allclose(out[2, 2], rgb[2, 2], atol=1e-9)  # far away: untouched
     # inside the blurred edge the hidden background (estimated: red) shows through
@@ -342,24 +343,26 @@ def test_mirror_in_an_rgbd_is_used_and_checked():
         defocus(rgb, depth, cam, mirror=cover)
 
 
-def _spot(cam, c, n, **kw):
+def _spot(cam, c, n, method="pyramid", **kw):
     rgb = np.zeros((n, n, 3))
     rgb[n // 2, n // 2] = 1.0
-    return np.asarray(defocus(rgb, np.full((n, n), depth_for_coc(c, cam)), cam, **kw))[..., 0]
+    return np.asarray(defocus(rgb, np.full((n, n), depth_for_coc(c, cam)), cam, method=method,
+                              **kw))[..., 0]
 
 
-def test_bokeh_polygon_near_far_point_reflection_and_anamorphic_ratio():
+# the largest |c| each method blurs at full resolution (coarser levels pool on a grid that is not
+# symmetric about the spot, so their point reflection holds only up to the pooling)
+@pytest.mark.parametrize("method, c", [("pyramid", 4.0), ("sliced", 3.0)])
+def test_bokeh_polygon_near_far_point_reflection_and_anamorphic_ratio(method, c):
     n = 33
     cam = camera(n)
-    # |c| = 4 runs at full resolution (coarser levels pool on a grid that is not symmetric
-    # about the spot, so their point reflection holds only up to the pooling)
-    near = _spot(cam, 4.0, n, shape="polygon", blades=5, rotation=0.3)
-    far = _spot(cam, -4.0, n, shape="polygon", blades=5, rotation=0.3)
+    near = _spot(cam, c, n, method, shape="polygon", blades=5, rotation=0.3)
+    far = _spot(cam, -c, n, method, shape="polygon", blades=5, rotation=0.3)
     np.testing.assert_allclose(near, far[::-1, ::-1], atol=1e-12)
     assert np.abs(near - near[::-1, ::-1]).max() > 1e-3  # a pentagon is not point-symmetric
     np.testing.assert_allclose(near.sum(), 1.0, rtol=1e-10)
-    disc = _spot(cam, 4.0, n)
-    wide = _spot(cam, 4.0, n, ratio=2.0)
+    disc = _spot(cam, c, n, method)
+    wide = _spot(cam, c, n, method, ratio=2.0)
     ys, xs = np.nonzero(wide > 1e-3 * wide.max())
     assert (xs.max() - xs.min()) > 1.7 * (ys.max() - ys.min())
     ys, xs = np.nonzero(disc > 1e-3 * disc.max())

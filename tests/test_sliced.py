@@ -190,10 +190,15 @@ def test_hidden_switch_is_checked():
         dofjax.defocus_fn(rgb, depth, cam, method="sliced", hidden="yes")
     # pyramid: on by default, and hidden=False switches it off (visible only at depth edges)
     depth[8:20, 8:20] = depth_for_coc(4.0, cam)
-    on, off = (np.asarray(dofjax.defocus(rgb, depth, cam, window=6, hidden=h))
+    on, off = (np.asarray(dofjax.defocus(rgb, depth, cam, window=6, hidden=h, method="pyramid"))
                for h in (None, False))
     assert np.max(np.abs(on - off)) > 0.01
     np.testing.assert_allclose(on[:3, :3], off[:3, :3], atol=1e-12)
+    # sliced, the default method: off by default (as the fitter's model), True switches it on
+    dflt, off, on = (np.asarray(dofjax.defocus(rgb, depth, cam, window=6, hidden=h))
+                     for h in (None, False, True))
+    np.testing.assert_array_equal(dflt, off)
+    assert np.max(np.abs(on - off)) > 0.01
 
 
 def test_matches_pyramid_on_constant_depth_levels():
