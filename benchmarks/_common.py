@@ -20,12 +20,19 @@ RENDERER_SOURCES = ("_reference.py", "_raycast.py", "_intersect.py", "_sampling.
 
 
 def method_options(token: str) -> dict:
-    """`dofjax.defocus` keywords of a `--methods` token: a method name, or `METHOD+hidden` (the
-    method with the hidden-background estimate of single-layer input, `hidden=True`)."""
-    method, plus, extra = token.partition("+")
-    if plus and extra != "hidden":
-        raise ValueError(f"unknown method token {token!r}: expected a method or METHOD+hidden")
-    return dict(method=method, hidden=True) if plus else dict(method=method)
+    """`dofjax.defocus` keywords of a `--methods` token: a method name, then any of `+hidden`
+    (the hidden-background estimate of single-layer input, `hidden=True`) and `+subK` (K
+    sub-apertures, `subapertures=K`): "sliced", "sliced+hidden", "sliced+sub4+hidden"."""
+    method, *extras = token.split("+")
+    out = dict(method=method)
+    for extra in extras:
+        if extra == "hidden":
+            out["hidden"] = True
+        elif extra.startswith("sub") and extra[3:].isdigit():
+            out["subapertures"] = int(extra[3:])
+        else:
+            raise ValueError(f"unknown method token {token!r}: expected METHOD[+hidden][+subK]")
+    return out
 
 
 def _code_of(source: str) -> str:

@@ -222,7 +222,7 @@ def run_scene(path, args):
                     sharp.rgb, sharp.depth, cam, reflection=sharp.reflection,
                     reflection_depth=sharp.reflection_depth, mirror=sharp.mirror,
                     **method_options(m)))))
-            if not method.endswith("+hidden"):  # (peeled layers: no estimate to make)
+            if not method_options(method).get("hidden"):  # (peeled layers: no estimate to make)
                 variants.append((f"{method}, {args.layers} layers", dict(
                     f=lambda m=method: dofjax.defocus(sharp, cam, method=m))))
         variants.append(("seed (Yu 2004, before)", dict(
@@ -270,7 +270,7 @@ def guarded_variants(methods, layers, sharp, cam, margin, tag):
                 sharp.rgb, sharp.depth, cam, reflection=sharp.reflection,
                 reflection_depth=sharp.reflection_depth, mirror=sharp.mirror, margin=margin,
                 **method_options(m)))))
-        if not method.endswith("+hidden"):
+        if not method_options(method).get("hidden"):
             out.append((f"{method}, {layers} layers, {tag}", dict(
                 f=lambda m=method: dofjax.defocus(sharp, cam, method=m, margin=margin))))
     return out

@@ -163,7 +163,7 @@ def variants(args) -> list[tuple[str, str, int | None]]:
     out = [(f"{token}, 1 layer", token, None) for token in args.methods]
     for k in args.layers:
         out += [(f"{token}, {k} layers", token, k)
-                for token in args.methods if not token.endswith("+hidden")]
+                for token in args.methods if not method_options(token).get("hidden")]
     return out
 
 

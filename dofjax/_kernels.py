@@ -96,6 +96,55 @@ def _pyramid_extra_moment(scale: int) -> float:
     return 2.0 * (scale * scale - 1.0) / 3.0
 
 
+# Sub-samples per pixel side with which a kernel tap is shared between sub-aperture cells.
+_CELL_SUBSAMPLES = 8
+
+
+def _cell_membership(n: int, cell: tuple[int, int], rotation: float) -> np.ndarray:
+    """(n, n) share of each tap of an n x n kernel (rows = image rows, y down) inside sector
+    `cell` = (k, K) of the aperture: the angles [rotation + 2 pi k / K, rotation + 2 pi (k + 1) / K)
+    counter-clockwise from +x (y up), from 8 x 8 sub-samples per tap (the centre tap is shared
+    evenly)."""
+    k, count = cell
+    h = n // 2
+    o = (np.arange(_CELL_SUBSAMPLES) + 0.5) / _CELL_SUBSAMPLES - 0.5
+    off = np.arange(-h, h + 1, dtype=np.float64)
+    yy, xx = np.meshgrid(off, off, indexing="ij")
+    x = xx[..., None, None] + o[None, None, None, :]
+    y = -(yy[..., None, None] + o[None, None, :, None])
+    theta = np.mod(np.arctan2(y, x) - rotation, 2.0 * math.pi)
+    width = 2.0 * math.pi / count
+    return ((theta >= k * width) & (theta < (k + 1) * width)).mean(axis=(-1, -2))
+
+
+def cell_kernel(rho: float, blades, rotation: float, ratio: float, cell: tuple[int, int] | None,
+                flip: bool = False) -> np.ndarray:
+    """`soft_kernel` restricted to the sub-aperture `cell` = (k, K) (None: the whole aperture),
+    normalised by its discrete sum: what the part of the lens in sector k of K spreads a source
+    over (a far-field source; `flip`: the near field's point reflection)."""
+    if cell is None:
+        return soft_kernel(rho, blades, rotation, ratio, flip=flip)
+    k = soft_kernel(rho, blades, rotation, ratio)
+    k = k * _cell_membership(k.shape[0], cell, rotation)
+    if flip:
+        k = k[::-1, ::-1]
+    return np.ascontiguousarray(k / k.sum())
+
+
+@functools.lru_cache(maxsize=64)
+def cell_weights(count: int, blades, rotation: float, ratio: float) -> tuple[float, ...]:
+    """Area fractions of the aperture's sectors (k, count), k = 0 ... count - 1: the weights of
+    the sub-aperture images (equal for a disc, not for an ellipse or most polygons)."""
+    n = 1024  # cell-centred samples: symmetric under the square's rotations and reflections
+    t = ((np.arange(n) + 0.5) / n * 2.0 - 1.0) * max(ratio, 1.0)
+    x, y = np.meshgrid(t, t)
+    inside = radial_function(x, y, blades, rotation, ratio) <= 1.0
+    theta = np.mod(np.arctan2(y, x) - rotation, 2.0 * math.pi)
+    idx = np.minimum((theta / (2.0 * math.pi / count)).astype(np.int64), count - 1)
+    area = np.bincount(idx[inside], minlength=count).astype(np.float64)
+    return tuple(float(a) for a in area / area.sum())
+
+
 @functools.lru_cache(maxsize=512)
 def coarse_radius(rho: float, scale: int, blades, rotation, ratio) -> float:
     """Kernel radius (coarse px) at `scale` whose pyramid result has the second moment of `rho`.

@@ -69,7 +69,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._camera import Camera, coc_radius
-from ._kernels import MAGNITUDES, R0, bucket_window, soft_kernel
+from ._kernels import MAGNITUDES, R0, bucket_window, cell_kernel
 from ._numerics import safe_div, safe_sqrt
 from ._rgbd import Layers
 
@@ -146,8 +146,9 @@ def _resample_variance(s: int, steps: tuple[int, ...] = ()) -> float:
 
 
 @functools.lru_cache(maxsize=64)
-def _plan(window, blades, rotation, ratio, min_radius=MIN_LOW_RADIUS):
-    """Front-to-back levels, their resolution divisors and their (coarse-grid) kernels.
+def _plan(window, blades, rotation, ratio, min_radius=MIN_LOW_RADIUS, cell=None):
+    """Front-to-back levels, their resolution divisors and their (coarse-grid) kernels (of the
+    sub-aperture `cell` = (k, K), `_kernels.cell_kernel`; None: the whole aperture).
 
     A level blurred at 1/s of the resolution gets the kernel whose second moment, plus what the
     resampling adds, equals the full-resolution kernel's, so the slice keeps its blur's size.
@@ -163,15 +164,15 @@ def _plan(window, blades, rotation, ratio, min_radius=MIN_LOW_RADIUS):
             # the slice returns to full resolution through every finer run's resolution
             finer = [f for f in distinct if f <= s]
             steps = tuple(b // a for a, b in zip(finer[:-1], finer[1:]))[::-1]
-            full = soft_kernel(rho, blades, rotation, ratio, flip=flip)
+            full = cell_kernel(rho, blades, rotation, ratio, cell, flip=flip)
             goal = (_kernel_variance(full) - _resample_variance(s, steps)) / (s * s)
             lo, hi = R0, rho / s
             for _ in range(40):  # bisection on the coarse radius
                 mid = 0.5 * (lo + hi)
-                v = _kernel_variance(soft_kernel(mid, blades, rotation, ratio, flip=flip))
+                v = _kernel_variance(cell_kernel(mid, blades, rotation, ratio, cell, flip=flip))
                 lo, hi = (mid, hi) if v < goal else (lo, mid)
             rho = round(0.5 * (lo + hi), 9)
-        kernels.append(soft_kernel(rho, blades, rotation, ratio, flip=flip))
+        kernels.append(cell_kernel(rho, blades, rotation, ratio, cell, flip=flip))
     return levels, tuple(factors), tuple(kernels)
 
 
@@ -410,10 +411,10 @@ def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_de
 
 
 @functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio",
-                                             "min_radius"))
+                                             "min_radius", "cell"))
 def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rotation=0.0,
                    ratio=1.0, reflection=None, reflection_depth=None, layers=None,
-                   min_radius: float = MIN_LOW_RADIUS, mirror=None):
+                   min_radius: float = MIN_LOW_RADIUS, mirror=None, cell=None):
     """Defocus by depth slices, each blurred by shifted sums at its own resolution (pure,
     jittable; `window` px and `min_radius` are static).
 
@@ -424,10 +425,12 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     `mirror`: a `Mirror`: the image then has a fourth channel, the mirrors' footprint scattered
     at the visible surface's depth and occluded like its colour (the reflection itself is left
     out: the caller confines the separately defocused virtual scene by it).
+    `cell`: (k, K): the image through sector k of K of the aperture only (static; None: all of
+    it), one term of `dofjax.defocus(..., subapertures=K)`.
     """
     levels = _levels(float(window))
     lay = _layout(float(window), blades, float(rotation), float(ratio), float(min_radius),
-                  depth.shape[-2], depth.shape[-1])
+                  depth.shape[-2], depth.shape[-1], cell)
     colour, q, alpha, refl, q_r, _, cover = _source_fields(
         rgb, depth, layers, camera, levels, reflection, reflection_depth, lay, mirror)
     out, _, _ = _composite(colour, q, alpha, refl, q_r, None, lay, cover=cover)
@@ -435,11 +438,11 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
 
 
 @functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio",
-                                             "min_radius", "residuals"))
+                                             "min_radius", "residuals", "cell"))
 def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades=None,
                             rotation=0.0, ratio=1.0, reflection=None, reflection_depth=None,
                             layers=None, min_radius: float = MIN_LOW_RADIUS,
-                            residuals: bool = False, mirror=None):
+                            residuals: bool = False, mirror=None, cell=None):
     """`sliced_defocus` and its derivatives w.r.t. focus_distance and aperture_radius:
     (out, (d out / d focus, d out / d aperture)), three (H, W, 3) images from one pass that
     carries both tangents beside the image.
@@ -459,7 +462,7 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     levels = _levels(float(window))
     dtype = rgb.dtype
     lay = _layout(float(window), blades, float(rotation), float(ratio), float(min_radius),
-                  depth.shape[-2], depth.shape[-1])
+                  depth.shape[-2], depth.shape[-1], cell)
     colour, q, alpha, refl, q_r, raw, cover = _source_fields(
         rgb, depth, layers, camera, levels, reflection, reflection_depth, lay, mirror)
     directions = _directions(camera.focus_distance, camera.aperture_radius, camera.pixel_scale,
@@ -479,9 +482,9 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
 
 
 @functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio",
-                                             "min_radius"))
+                                             "min_radius", "cell"))
 def sliced_defocus_adjoint(res, ct, *, window: float, blades=None, rotation=0.0, ratio=1.0,
-                           min_radius: float = MIN_LOW_RADIUS):
+                           min_radius: float = MIN_LOW_RADIUS, cell=None):
     """J^T ct, for J the (focus, aperture) Jacobian of `sliced_defocus_jacobian` and ct an
     (H, W, 3) cotangent of its image: the reverse-mode gradient, from the residuals `res` of
     `sliced_defocus_jacobian(..., residuals=True)` (the same static arguments), by one pass of
@@ -494,7 +497,7 @@ def sliced_defocus_adjoint(res, ct, *, window: float, blades=None, rotation=0.0,
     q, q_r, raw = res["q"], res["q_r"], res["raw"]
     g_q, g_alpha, g_q_r = _composite_adjoint(
         res["composite"], ct, window=float(window), blades=blades, rotation=float(rotation),
-        ratio=float(ratio), min_radius=float(min_radius), layered=raw is not None)
+        ratio=float(ratio), min_radius=float(min_radius), layered=raw is not None, cell=cell)
     if raw is not None:
         g_q = g_q + jax.vjp(functools.partial(_gate, raw, levels), q)[1](g_alpha)[0]
     out = []
@@ -609,8 +612,8 @@ class _Layout(NamedTuple):
         return distinct, jnp.asarray(which, jnp.int32)
 
 
-def _layout(window, blades, rotation, ratio, min_radius, height, width) -> _Layout:
-    levels, factors, kernels = _plan(window, blades, rotation, ratio, min_radius)
+def _layout(window, blades, rotation, ratio, min_radius, height, width, cell=None) -> _Layout:
+    levels, factors, kernels = _plan(window, blades, rotation, ratio, min_radius, cell)
     s_max = max(factors)
     runs = _runs(levels, factors, kernels)
     sizes = [max(kernels[p].shape[0] for p in ps) for ps in runs]
@@ -956,7 +959,8 @@ def _channel_sum(x):
     return functools.reduce(jnp.add, [x[i] for i in range(x.shape[0])])
 
 
-def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, layered: bool):
+def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, layered: bool,
+                       cell=None):
     """The transpose of `_composite`'s tangent lanes: the cotangent `ct` (H, W, 3) of the image
     taken back to the sources' tangents of q (and of coverage, `layered`, and of the mirror's q),
     from the value lane's residuals `res` (`_composite(..., residuals=True)`).
@@ -976,7 +980,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
     mirror, masked = refl is not None, cover is not None
     height, width = ct.shape[0], ct.shape[1]
     dtype = colour.dtype
-    lay = _layout(window, blades, rotation, ratio, min_radius, height, width)
+    lay = _layout(window, blades, rotation, ratio, min_radius, height, width, cell)
     factors, kernels, runs = lay.factors, lay.kernels, lay.runs
     hp, wp = lay.hp, lay.wp
     nc = 3 + 3 * mirror + masked
