@@ -224,7 +224,7 @@ def run_scene(path, args):
                     **method_options(m)))))
             if not method_options(method).get("hidden"):  # (peeled layers: no estimate to make)
                 variants.append((f"{method}, {args.layers} layers", dict(
-                    f=lambda m=method: dofjax.defocus(sharp, cam, method=m))))
+                    f=lambda m=method: dofjax.defocus(sharp, cam, **method_options(m)))))
         variants.append(("seed (Yu 2004, before)", dict(
             f=lambda: seed_defocus(sharp.rgb, sharp.depth, cam))))
         if args.guard and sharp_spp == max(args.sharp_spp):
@@ -272,7 +272,8 @@ def guarded_variants(methods, layers, sharp, cam, margin, tag):
                 **method_options(m)))))
         if not method_options(method).get("hidden"):
             out.append((f"{method}, {layers} layers, {tag}", dict(
-                f=lambda m=method: dofjax.defocus(sharp, cam, method=m, margin=margin))))
+                f=lambda m=method: dofjax.defocus(sharp, cam, margin=margin,
+                                                  **method_options(m)))))
     return out
 
 

@@ -329,6 +329,24 @@ def test_real_defocus_recovery():
     assert abs(float(res.aperture_radius) / 0.15 - 1) < 1e-4
 
 
+def test_subaperture_polish_recovers_its_own_target():
+    """defocus_options={"subapertures": 4}: the search runs the plain sliced model, the polish
+    the sub-aperture one, which made the target (so it ends at the truth, where the plain
+    model leaves a residual)."""
+    rgb, depth = scene()
+    cam = CAM.replace(aperture_radius=0.1)
+    true = cam.replace(focus_distance=1.7, aperture_radius=0.15)
+    target = dofjax.defocus(rgb, depth, true, window=4.0, subapertures=4)
+    plain = dofjax.defocus(rgb, depth, true, window=4.0)
+    assert float(jnp.mean((plain - target) ** 2)) > 1e-6
+    res = fit_focus(target, rgb, depth, cam, starts=2, window=4.0,
+                    defocus_options={"subapertures": 4},
+                    bounds={"focus_distance": (0.8, 20.0), "aperture_radius": (0.01, 0.3)})
+    assert abs(float(res.focus_distance) / 1.7 - 1) < 1e-4
+    assert abs(float(res.aperture_radius) / 0.15 - 1) < 1e-4
+    assert float(res.loss) < 1e-10
+
+
 def test_supersampled_sharp_input():
     """A sharp input rendered S times finer (`Camera.scaled(S)`): the polish runs the model on it
     and box-averages the prediction to the target's grid, so a target made that way is

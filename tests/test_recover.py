@@ -43,6 +43,8 @@ def test_recover_rejects_options_that_do_not_apply(tmp_path, capsys):
     path = str(tmp_path / "t.exr")
     dofjax.write_exr(path, np.zeros((4, 4, 3), np.float32))
     for argv, msg in ((["--samples", "64"], "--samples is for --method lens only"),
+                      (["--method", "lens", "--subapertures", "4"],
+                       "--subapertures is for --method sliced only"),
                       (["--sharp", path, "--supersample", "2"], "are for --scene"),
                       (["--supersample", "0"], "--supersample must be >= 1"),
                       (["--layers", "0"], "--layers must be >= 1")):
@@ -54,3 +56,5 @@ def test_recover_rejects_options_that_do_not_apply(tmp_path, capsys):
     # a value only the library can judge: its named error, not a silent default
     with pytest.raises(SystemExit, match="samples must be a positive int, got 0"):
         recover.main([path, "--scene", SCENE, "--method", "lens", "--samples", "0"])
+    with pytest.raises(SystemExit, match=r"subapertures must be an int in \[1, 16\], got 0"):
+        recover.main([path, "--scene", SCENE, "--subapertures", "0"])
