@@ -804,9 +804,9 @@ def defocus(
             edges falls: against the lens-sampling reference (128 px, max |c| 12, 3 peeled
             layers, guard band) RMSE on quads 0.0110 -> 0.0086 with 4, 0.0080 with 8 (the lens
             method 0.0055), on spheres 0.0225 -> 0.0172, boxes 0.0141 -> 0.0120
-            (benchmarks/README.md). Costs up to that many sliced passes and compiled copies
-            (a sector's kernels have a quarter of the taps, so less for the blurs);
-            derivatives as for 1. Default 1 (the whole aperture at once).
+            (benchmarks/README.md). Costs about that many sliced passes and compiled copies
+            (4: 4.2-5.2x the time at 512x512); derivatives written out as for 1. Default 1
+            (the whole aperture at once).
 
     Returns:
         (H, W, 3) defocused linear colour (and the info when asked).
