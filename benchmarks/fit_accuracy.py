@@ -113,7 +113,7 @@ def in_bounds(truth: dict, bounds: dict) -> bool:
 
 
 def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None, method=None,
-             samples=None) -> dict:
+             samples=None, subapertures=1) -> dict:
     """fit_focus of `target` from the case's sharp rgb and depth, or from `rgbd` (an `RGBD` from
     `dofjax.render`: its peeled layers and mirror layer enter the model), on the `mask` pixels,
     with the defocus `method` (None: fit_focus's default)."""
@@ -129,6 +129,8 @@ def fit_case(target, case, guess, bounds, args, rgbd=None, mask=None, method=Non
         extra["defocus_options"] = {"method": method}
         if samples is not None:
             extra["defocus_options"]["samples"] = samples
+        if subapertures != 1:
+            extra["defocus_options"]["subapertures"] = subapertures
     res = dofjax.fit_focus(target, *sharp, bounds=bounds, mask=mask, window=args.window,
                            starts=args.starts, loss=args.loss, **extra)
     seconds = time.perf_counter() - t
@@ -606,6 +608,7 @@ def ref_config(args) -> str:
     band = border_px(args)
     border = (f"{band} px ({'auto: ceil(window) + 1' if args.ref_border == 'auto' else 'fixed'})"
               if band > 0 else "none (every pixel fitted)")
+    sub = args.ref_subapertures
     finer = (f", polished on a sharp input {args.ref_supersample}x finer per side"
              if args.ref_supersample > 1 else "")
     return (f"Reference configuration: reference spp {args.spp}; sharp input: spp "
@@ -615,6 +618,7 @@ def ref_config(args) -> str:
             f"(`--ref-edge-mask {args.ref_edge_mask:g}`); start: "
             f"{'truth' if args.start_at_truth else 'random'}; fit model: {args.ref_method}"
             f"{f' ({args.ref_samples} lens points)' if args.ref_samples else ''}"
+            f"{f' ({args.ref_subapertures} sub-apertures in the polish)' if sub > 1 else ''}"
             f"{finer}"
             f"; renderer source hash "
             f"{code_hash()} (in the cache key), model/fit source hash "
@@ -632,7 +636,7 @@ def reference(args) -> None:
         raise SystemExit("--ref-supersample needs --ref-layers >= 1 (a render of the sharp input)")
     # the fit's polish model (`defocus` box-averages a supersampled sharp input itself)
     forward = jax.jit(dofjax.DefocusModel(window=args.window, method=args.ref_method,
-                                          samples=samples))
+                                          samples=samples, subapertures=args.ref_subapertures))
 
     band = border_px(args)
     frame_mask = border_mask((args.size, args.size), band)
@@ -652,7 +656,8 @@ def reference(args) -> None:
         if args.start_at_truth:  # diagnostic: model mismatch alone, no basin to find
             guess = case["camera"]
         row = fit_case(target, case, guess, bounds, args, rgbd=rgbd, mask=mask,
-                       method=args.ref_method, samples=samples)
+                       method=args.ref_method, samples=samples,
+                       subapertures=args.ref_subapertures)
         # How far the model (the fit's: same sharp input) is from the reference at the truth and
         # at the fit, relative rms over the fitted pixels and over the whole frame: a fit with
         # the smaller residual is what the mismatch favours.
@@ -846,6 +851,9 @@ def main(argv=None) -> None:
     p.add_argument("--ref-supersample", type=int, default=1,
                    help="reference: render the sharp input this many times finer per side "
                    "(Camera.scaled) and fit with it (the prediction is box-averaged back)")
+    p.add_argument("--ref-subapertures", type=int, default=1,
+                   help="reference, --ref-method sliced: sub-apertures of the polish's model "
+                   "(the search runs the plain sliced model)")
     p.add_argument("--ref-samples", type=int, default=None,
                    help="reference, --ref-method lens: lens points per pixel (default 256)")
     p.add_argument("--start-at-truth", action="store_true",
