@@ -4,6 +4,7 @@
     python benchmarks/stress.py --method sliced   # -> benchmarks/results/stress_sliced.md
     python benchmarks/stress.py --method sliced+hidden   # -> results/stress_sliced_hidden.md
     python benchmarks/stress.py --method lens     # -> benchmarks/results/stress_lens.md
+    python benchmarks/stress.py --method sliced+sub4   # -> results/stress_sliced_sub4.md
 
 Sweeps aperture 1e-6..1e3 (world units, fixed scene), focus 1e-3..1e6, depths exactly on the
 focal plane, depths of 1e-6, background at +inf, HDR colours up to 1e6, and a mirror (`Mirror`:
@@ -147,12 +148,17 @@ def run_case(kind, focus, aperture, dtype, method="pyramid"):
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--method", default="pyramid",
-                    choices=("pyramid", "sliced", "sliced+hidden", "lens", "lens+hidden"))
+                    help="a method token: pyramid, sliced, lens, with +hidden and (sliced) +subK "
+                    "(e.g. sliced+sub4)")
     ap.add_argument("--out", default=None,
                     help="default benchmarks/results/stress.md (pyramid), stress_sliced.md")
     ap.add_argument("--only", type=lambda v: v.split(","), default=None,
                     help="comma-separated case names to run (default all)")
     args = ap.parse_args()
+    try:
+        method_options(args.method)
+    except ValueError as e:
+        ap.error(str(e))
     if args.out is None:
         name = ("stress.md" if args.method == "pyramid"
                 else f"stress_{args.method.replace('+', '_')}.md")

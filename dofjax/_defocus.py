@@ -498,17 +498,19 @@ def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blade
             v_layers = _with_hidden(mirror.radiance, mirror.depth, None, None, window, "sliced",
                                     hidden)
         cells = [None] if subapertures == 1 else [(k, subapertures) for k in range(subapertures)]
-        weights = cell_weights(subapertures, blades, rotation, ratio)
-        total = None
-        for cell, w in zip(cells, weights):
+        images = []
+        for cell in cells:
             out = _sliced(rgb, depth, camera, reflection, reflection_depth, layers, window,
                           blades, rotation, ratio, False, mirror, cell)
             if mirror is not None:
                 virtual = _sliced(mirror.radiance, mirror.depth, camera, None, None, v_layers,
                                   window, blades, rotation, ratio, False, None, cell)
                 out = _confine(out, virtual)
-            total = out if cell is None else (w * out if total is None else total + w * out)
-        return total, None
+            images.append(out)
+        if len(images) == 1:
+            return images[0], None
+        weights = cell_weights(subapertures, blades, rotation, ratio)
+        return sum(w * image for w, image in zip(weights, images)), None
     return _pyramid(rgb, depth, camera, reflection, reflection_depth, layers, window, blades,
                     rotation, ratio, hidden, mirror)
 

@@ -103,8 +103,8 @@ _CELL_SUBSAMPLES = 8
 def _cell_membership(n: int, cell: tuple[int, int], rotation: float) -> np.ndarray:
     """(n, n) share of each tap of an n x n kernel (rows = image rows, y down) inside sector
     `cell` = (k, K) of the aperture: the angles [rotation + 2 pi k / K, rotation + 2 pi (k + 1) / K)
-    counter-clockwise from +x (y up), from 8 x 8 sub-samples per tap (the centre tap is shared
-    evenly)."""
+    counter-clockwise from +x (y up), from 8 x 8 sub-samples per tap (so a tap on a boundary,
+    the centre tap too, is shared between the sectors it touches)."""
     k, count = cell
     h = n // 2
     o = (np.arange(_CELL_SUBSAMPLES) + 0.5) / _CELL_SUBSAMPLES - 0.5

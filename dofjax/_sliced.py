@@ -42,9 +42,14 @@
    mirrors' footprint (`Mirror`) the footprint is instead a fourth channel at the visible
    surface's depth, occluded like the colour, that confines the virtual scene (`_defocus`).
 
-Kernels depend only on static choices (window, shape), so derivatives w.r.t. focus and aperture
-flow only through the slice weights. `sliced_defocus(...)` is pure and jittable (the window is
-static); `dofjax.defocus(..., method="sliced")` is the validated entry point. Its derivatives
+5. With `cell` = (k, K) every level's kernel is restricted to sector k of K of the aperture
+   (`_kernels.cell_kernel`, normalised on its own): the image a part of the lens sees, one term
+   of `dofjax.defocus(..., subapertures=K)`, which averages the K images by the sectors' areas.
+
+Kernels depend only on static choices (window, shape, cell), so derivatives w.r.t. focus and
+aperture flow only through the slice weights. `sliced_defocus(...)` is pure and jittable (the
+window is static); `dofjax.defocus(..., method="sliced")` is the validated entry point. Its
+derivatives
 w.r.t. (focus, aperture):
 - forward mode (`jax.jacfwd`, `jax.jvp`, the fitter's Jacobian): `sliced_defocus_jacobian`, the
   same pass carrying two tangents beside the image (~3x a forward pass; `jax.jacfwd` through
