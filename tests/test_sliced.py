@@ -210,6 +210,20 @@ def test_matches_pyramid_on_constant_depth_levels():
     np.testing.assert_allclose(a[6:-6, 6:-6], b[6:-6, 6:-6], atol=1e-9)
 
 
+def assert_grads_match_fd(loss, p, steps=(1e-5, 1e-7)):
+    """`jax.grad` and `jax.jacfwd` of `loss` at p against central differences (step per
+    parameter), relative 1e-5; returns the gradient."""
+    g_rev = jax.jit(jax.grad(loss))(p)
+    g_fwd = jax.jit(jax.jacfwd(loss))(p)
+    loss = jax.jit(loss)  # one compilation for the evaluations below
+    for i, h in enumerate(steps):
+        e = jnp.zeros(2).at[i].set(h)
+        fd = (loss(p + e) - loss(p - e)) / (2 * h)
+        assert float(g_rev[i]) == pytest.approx(float(fd), rel=1e-5)
+        assert float(g_fwd[i]) == pytest.approx(float(fd), rel=1e-5)
+    return g_rev
+
+
 def test_gradients_match_central_differences():
     cam = camera(aperture_radius=0.05)
     rng = np.random.default_rng(4)
@@ -222,15 +236,7 @@ def test_gradients_match_central_differences():
                              window=8)
         return jnp.sum(w * out)
 
-    p = jnp.array([2.1, 0.05])
-    g_rev = jax.jit(jax.grad(loss))(p)
-    g_fwd = jax.jit(jax.jacfwd(loss))(p)
-    loss = jax.jit(loss)  # one compilation for the four evaluations below
-    for i, h in enumerate([1e-5, 1e-7]):
-        e = jnp.zeros(2).at[i].set(h)
-        fd = (loss(p + e) - loss(p - e)) / (2 * h)
-        assert float(g_rev[i]) == pytest.approx(float(fd), rel=1e-5)
-        assert float(g_fwd[i]) == pytest.approx(float(fd), rel=1e-5)
+    assert_grads_match_fd(loss, jnp.array([2.1, 0.05]))
 
 
 def test_float32_stays_accurate_and_finite():
@@ -643,14 +649,7 @@ def test_subaperture_gradients_match_central_differences():
         return jnp.sum(w * f(p[0], p[1]))
 
     p = jnp.array([2.1, 0.05])
-    g_rev = jax.jit(jax.grad(loss))(p)
-    g_fwd = jax.jit(jax.jacfwd(loss))(p)
-    loss = jax.jit(loss)
-    for i, h in enumerate([1e-5, 1e-7]):
-        e = jnp.zeros(2).at[i].set(h)
-        fd = (loss(p + e) - loss(p - e)) / (2 * h)
-        assert float(g_rev[i]) == pytest.approx(float(fd), rel=1e-5)
-        assert float(g_fwd[i]) == pytest.approx(float(fd), rel=1e-5)
+    g_rev = assert_grads_match_fd(loss, p)
     # ... and they are not the whole aperture's
     g1 = jax.grad(lambda p: jnp.sum(w * dofjax.defocus_fn(rgb, depth, cam, window=8)(*p)))(p)
     assert np.abs(np.asarray(g1) - np.asarray(g_rev)).max() > 1e-6 * np.abs(np.asarray(g1)).max()
