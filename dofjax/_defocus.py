@@ -501,10 +501,10 @@ def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blade
         images = []
         for cell in cells:
             out = _sliced(rgb, depth, camera, reflection, reflection_depth, layers, window,
-                          blades, rotation, ratio, False, mirror, cell)
+                          blades, rotation, ratio, mirror, cell)
             if mirror is not None:
                 virtual = _sliced(mirror.radiance, mirror.depth, camera, None, None, v_layers,
-                                  window, blades, rotation, ratio, False, None, cell)
+                                  window, blades, rotation, ratio, None, cell)
                 out = _confine(out, virtual)
             images.append(out)
         if len(images) == 1:
@@ -534,12 +534,10 @@ _run_pooled = partial(jax.jit, static_argnames=(
 
 
 def _sliced(rgb, depth, camera, reflection, reflection_depth, layers, window, blades, rotation,
-            ratio, hidden, mirror, cell=None):
+            ratio, mirror, cell=None):
     """The sliced method's image (with a footprint channel when `mirror` is given; through the
     sub-aperture `cell` only, when given), its (focus, aperture) derivatives by its written-out
-    Jacobian and adjoint."""
-    layers = _with_hidden(rgb, depth, reflection, layers, window, "sliced", hidden)
-
+    Jacobian and adjoint. `layers` include the hidden-background estimate if any (`_run`)."""
     def at(fn):
         """fn (`sliced_defocus` or `sliced_defocus_jacobian`) at focus, aperture = y."""
         def call(y, a):
@@ -665,7 +663,7 @@ def check_subapertures(name: str, subapertures, method: str) -> int:
 
 
 def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, method, shape, blades,
-            rotation, ratio, samples=None, margin=0, hidden=None, mirror=None):
+            rotation, ratio, samples=None, margin=0, hidden=None, mirror=None, subapertures=1):
     """Unpack `(rgb, depth, camera)` or `(rgbd, camera)`, convert and validate on the host: the one
     input path of `defocus` and `defocus_fn`."""
     if isinstance(rgb, RGBD):
@@ -682,6 +680,7 @@ def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, meth
     if method not in METHODS:
         raise ValueError(f"{name}: method must be one of {METHODS}, got {method!r}")
     check_samples(name, samples, method)
+    subapertures = check_subapertures(name, subapertures, method)
     hidden = check_hidden(name, hidden, method, layers)
     margin = check_margin(name, margin)
     camera = camera.padded(margin) if isinstance(camera, Camera) else camera
@@ -699,7 +698,7 @@ def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, meth
         reflection = mirror.coverage[..., None] * mirror.radiance
         reflection_depth = mirror.depth
     return (rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio, s,
-            hidden, mirror)
+            hidden, mirror, subapertures)
 
 
 def _crop(margin: int) -> tuple[slice, slice]:
@@ -818,10 +817,9 @@ def defocus(
             bad shape parameters. A clamped CoC is a `DefocusWarning`, not an error.
     """
     (rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio, s,
-     hidden, mirror) = _inputs("defocus", rgb, depth, camera, reflection, reflection_depth,
-                               layers, method, shape, blades, rotation, ratio, samples, margin,
-                               hidden, mirror)
-    subapertures = check_subapertures("defocus", subapertures, method)
+     hidden, mirror, subapertures) = _inputs(
+        "defocus", rgb, depth, camera, reflection, reflection_depth, layers, method, shape, blades,
+        rotation, ratio, samples, margin, hidden, mirror, subapertures)
     crop = _crop(margin)
     # a supersampled input (s > 1): `camera` is now the fine one, CoCs in its pixels; the window
     # is given and reported, and the result returned, on the coarse grid
@@ -929,10 +927,9 @@ def defocus_fn(
         function also has `.window` (px) and `.max_abs_coc(focus, aperture)` (jittable).
     """
     (rgb, depth, camera, reflection, reflection_depth, layers, blades, rotation, ratio, s,
-     hidden, mirror) = _inputs("defocus_fn", rgb, depth, camera, reflection, reflection_depth,
-                               layers, method, shape, blades, rotation, ratio, samples, margin,
-                               hidden, mirror)
-    subapertures = check_subapertures("defocus_fn", subapertures, method)
+     hidden, mirror, subapertures) = _inputs(
+        "defocus_fn", rgb, depth, camera, reflection, reflection_depth, layers, method, shape,
+        blades, rotation, ratio, samples, margin, hidden, mirror, subapertures)
     if window is None:
         c = np.abs(np.asarray(jnp.asarray(_coc_host(depth, camera)))) / s
         window = max(2.0 * float(c.max()), 1.0)

@@ -100,6 +100,13 @@ def _pyramid_extra_moment(scale: int) -> float:
 _CELL_SUBSAMPLES = 8
 
 
+def _sector(x, y, count: int, rotation: float) -> np.ndarray:
+    """Index k of the sector [rotation + 2 pi k / count, rotation + 2 pi (k + 1) / count)
+    (counter-clockwise from +x, y up) holding each point (x, y)."""
+    theta = np.mod(np.arctan2(y, x) - rotation, 2.0 * math.pi)
+    return np.minimum((theta / (2.0 * math.pi / count)).astype(np.int64), count - 1)
+
+
 def _cell_membership(n: int, cell: tuple[int, int], rotation: float) -> np.ndarray:
     """(n, n) share of each tap of an n x n kernel (rows = image rows, y down) inside sector
     `cell` = (k, K) of the aperture: the angles [rotation + 2 pi k / K, rotation + 2 pi (k + 1) / K)
@@ -112,9 +119,7 @@ def _cell_membership(n: int, cell: tuple[int, int], rotation: float) -> np.ndarr
     yy, xx = np.meshgrid(off, off, indexing="ij")
     x = xx[..., None, None] + o[None, None, None, :]
     y = -(yy[..., None, None] + o[None, None, :, None])
-    theta = np.mod(np.arctan2(y, x) - rotation, 2.0 * math.pi)
-    width = 2.0 * math.pi / count
-    return ((theta >= k * width) & (theta < (k + 1) * width)).mean(axis=(-1, -2))
+    return (_sector(x, y, count, rotation) == k).mean(axis=(-1, -2))
 
 
 def cell_kernel(rho: float, blades, rotation: float, ratio: float, cell: tuple[int, int] | None,
@@ -139,10 +144,8 @@ def cell_weights(count: int, blades, rotation: float, ratio: float) -> tuple[flo
     t = ((np.arange(n) + 0.5) / n * 2.0 - 1.0) * max(ratio, 1.0)
     x, y = np.meshgrid(t, t)
     inside = radial_function(x, y, blades, rotation, ratio) <= 1.0
-    theta = np.mod(np.arctan2(y, x) - rotation, 2.0 * math.pi)
-    idx = np.minimum((theta / (2.0 * math.pi / count)).astype(np.int64), count - 1)
-    area = np.bincount(idx[inside], minlength=count).astype(np.float64)
-    return tuple(float(a) for a in area / area.sum())
+    area = np.bincount(_sector(x, y, count, rotation)[inside], minlength=count)
+    return tuple(float(a) for a in area / float(area.sum()))
 
 
 @functools.lru_cache(maxsize=512)
