@@ -618,7 +618,7 @@ def ref_config(args) -> str:
             f"(`--ref-edge-mask {args.ref_edge_mask:g}`); start: "
             f"{'truth' if args.start_at_truth else 'random'}; fit model: {args.ref_method}"
             f"{f' ({args.ref_samples} lens points)' if args.ref_samples else ''}"
-            f"{f' ({args.ref_subapertures} sub-apertures in the polish)' if sub > 1 else ''}"
+            f"{f' ({sub} sub-apertures in the polish)' if sub > 1 else ''}"
             f"{finer}"
             f"; renderer source hash "
             f"{code_hash()} (in the cache key), model/fit source hash "
