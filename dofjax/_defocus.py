@@ -91,7 +91,7 @@ from ._kernels import (
 )
 from ._lens import LENS_SAMPLES, lens_defocus, levels as lens_levels
 from ._numerics import box_pool, inverse_depth
-from ._rgbd import RGBD, Layers, Mirror
+from ._rgbd import RGBD, Layers, Mirror, mirror_depths_seen
 from ._sliced import sliced_defocus, sliced_defocus_adjoint, sliced_defocus_jacobian
 
 METHODS = ("pyramid", "sliced", "lens")
@@ -765,7 +765,10 @@ def defocus(
             the hidden-background estimate, so blurred foreground edges uncover real surfaces.
         window: static largest |c| (px) to support; rounded up to a level magnitude (1, 2, 3, 4, 6,
             8, 12, ..., 128); |c| beyond it is clamped to it. None: chosen from the image (host
-            check; not possible under jit). Give it to call `defocus` inside `jax.jit`/`vmap`.
+            check; not possible under jit): every surface, peeled layer and reflection, and with
+            a `mirror` its virtual scene on the footprint and beyond it within twice the window
+            (what a blurred mirror edge gathers). Give it to call `defocus` inside
+            `jax.jit`/`vmap`.
         return_info: also return a `DefocusInfo`.
         method: "sliced" (default; `_sliced.py`: depth slices, coarse ones at reduced
             resolution, composited in `lax.scan`s with written-out derivatives; ~3x one FFT
@@ -824,22 +827,41 @@ def defocus(
     # a supersampled input (s > 1): `camera` is now the fine one, CoCs in its pixels; the window
     # is given and reported, and the result returned, on the coarse grid
 
+    if window is not None:
+        window = float(window)
+        if not (math.isfinite(window) and window > 0):
+            raise ValueError(f"defocus: window must be > 0 px, got {window!r}")
     concrete = all(
         _is_concrete(v)
         for v in (rgb, depth, camera.aperture_radius, camera.focus_distance, camera.fov)
-    ) and (layers is None or _is_concrete(layers.depth))
+    ) and (layers is None or _is_concrete(layers.depth)) and (
+        mirror is None or (_is_concrete(mirror.depth) and _is_concrete(mirror.coverage)))
     max_abs = None
     if concrete:
         zs = [np.asarray(depth)]
         if layers is not None:
             zs.append(np.asarray(layers.depth)[np.asarray(layers.alpha) > 0])
-        if reflection_depth is not None:
+        if reflection_depth is not None and mirror is None:  # (with a Mirror, only subtracted)
             zs.append(np.asarray(reflection_depth))
-        if mirror is not None:  # on the footprint (past it the radiance is clamped, unwarned)
-            zs.append(np.asarray(mirror.depth)[np.asarray(mirror.coverage) > 0])
-        inv = np.concatenate([1.0 / np.ravel(z).astype(np.float64) for z in zs])
         ak = float(camera.aperture_radius) * float(camera.pixel_scale)
-        max_abs = float(np.max(np.abs(ak * (inv - 1.0 / float(camera.focus_distance)))))
+
+        def largest(zs):
+            inv = np.concatenate([1.0 / np.ravel(z).astype(np.float64) for z in zs])
+            return float(np.max(np.abs(ak * (inv - 1.0 / float(camera.focus_distance)))))
+
+        max_abs = largest(zs)
+        if mirror is not None:
+            # the virtual scene on the footprint and its extension within reach of the footprint
+            # (a blurred mirror edge gathers from it): reach = twice the window, which grows
+            # with what the extension adds (window buckets: a few rounds at most)
+            reach = 0.0
+            while True:
+                w_reach = bucket_window(window * s if window is not None else max_abs)
+                if 2.0 * w_reach <= reach:
+                    break
+                reach = 2.0 * w_reach
+                max_abs = max(max_abs, largest(
+                    [mirror_depths_seen(mirror.coverage, mirror.depth, reach)]))
     reported = None if max_abs is None else max_abs / s
     if window is None:
         if max_abs is None:
@@ -853,9 +875,6 @@ def defocus(
             return (out, info) if return_info else out
         win = bucket_window(max_abs)
     else:
-        window = float(window)
-        if not (math.isfinite(window) and window > 0):
-            raise ValueError(f"defocus: window must be > 0 px, got {window!r}")
         win = bucket_window(window * s)
     clamped = max_abs is not None and max_abs > win * (1.0 + 1e-6)
     if clamped:

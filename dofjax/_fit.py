@@ -72,9 +72,10 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ._autodiff import value_and_jacobian
 from ._camera import Camera, coc_radius
 from ._defocus import as_mirror, supersampling
+from ._kernels import bucket_window
 from ._linalg import ThinQR, unit_column_svd
 from ._numerics import box_pool as _pool, inverse_depth, safe_div
-from ._rgbd import RGBD, Layers, Mirror
+from ._rgbd import RGBD, Layers, Mirror, mirror_depths_seen
 
 PARAMS = ("focus_distance", "aperture_radius")
 SOLVERS = ("lm", "gauss_newton", "dogleg", "bfgs")
@@ -1366,6 +1367,24 @@ def _depths_seen(depth_a: np.ndarray, weight: np.ndarray, extras: _Extras | None
     return np.concatenate(out)
 
 
+def _auto_window(depth_a, weight, extras, k: float, u_bounds, a_hi: float, max_window: float,
+                 s: int) -> float:
+    """The fit's window (target px): the largest |CoC| inside the bounds (`_reach`) of every
+    depth the defocus sees, at most `max_window`. With a mirror layer that includes its
+    extension past the footprint within reach of it (`mirror_depths_seen`, as `defocus` does:
+    twice the window, in the sharp input's px, s per target px)."""
+    depths = _depths_seen(depth_a, weight, extras)
+    win = min(_reach(depths, k, u_bounds, a_hi), max_window)
+    if extras is None or extras.mirror is None:
+        return win
+    m, reach = extras.mirror, 0.0
+    while 2.0 * bucket_window(win) * s > reach:
+        reach = 2.0 * bucket_window(win) * s
+        ext = mirror_depths_seen(m.coverage, m.depth, reach, where=weight > 0)
+        win = min(_reach(np.concatenate([depths, ext]), k, u_bounds, a_hi), max_window)
+    return win
+
+
 def _depth_modes(fracs: np.ndarray, n: int = _SCAN_MODES) -> np.ndarray:
     """The `n` most common inverse depths of the scene, as fractions of the u bounds.
 
@@ -1472,10 +1491,9 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
     else:
         delta0 = jnp.asarray(np.inf, dtype)  # plain least squares (all robust weights 1)
     if model is None:
-        win = window if window is not None else min(
-            _reach(_depths_seen(depth_a, weight_sharp, extras), float(camera.pixel_scale),
-                   (u_lo, u_hi), a_bounds[1]),
-            max_window)
+        win = window if window is not None else _auto_window(
+            depth_a, weight_sharp, extras, float(camera.pixel_scale), (u_lo, u_hi), a_bounds[1],
+            max_window, s)
         base = DefocusModel(window=float(max(win, 1.0)), **(defocus_options or {}))
         # the lens method and sub-apertures only polish: their minimum lies in the plain
         # sliced model's basin, and a search with them would cost ~1000x (lens) or K x as much

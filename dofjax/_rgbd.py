@@ -5,7 +5,10 @@ DESIGN.md sections 2 and 3. All images are linear float, rows top to bottom.
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
+import numpy as np
 from jaxtyping import Array, Float
 
 
@@ -80,3 +83,30 @@ class RGBD(eqx.Module):
     @property
     def shape(self) -> tuple[int, int]:
         return self.depth.shape
+
+
+def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
+    """`mask` (H, W) grown by r px (a (2r + 1)^2 square), by a summed-area table."""
+    if r <= 0:
+        return mask
+    h, w = mask.shape
+    table = np.pad(mask.astype(np.int64), ((1, 0), (1, 0))).cumsum(axis=0).cumsum(axis=1)
+    y0, y1 = np.clip(np.arange(h) - r, 0, h), np.clip(np.arange(h) + r + 1, 0, h)
+    x0, x1 = np.clip(np.arange(w) - r, 0, w), np.clip(np.arange(w) + r + 1, 0, w)
+    count = (table[y1][:, x1] - table[y0][:, x1] - table[y1][:, x0] + table[y0][:, x0])
+    return count > 0
+
+
+def mirror_depths_seen(coverage, depth, reach: float, where=None) -> np.ndarray:
+    """The virtual depths a defocus of this mirror layer can see (host arrays, flattened): on the
+    footprint (coverage > 0) and beyond it within `reach` px, where a blurred mirror edge
+    gathers the extended plane's reflection (`Mirror.radiance` and `depth` past the footprint);
+    the rest of that extension is confined away. Restricted to `where` (H, W) if given.
+
+    A lens ray through a pixel within |c_mirror| of the footprint can reach the mirror, and what
+    it sees there lies within |c_virtual| of the pixel: `reach` = twice the window covers both.
+    """
+    near = _dilate(np.asarray(coverage) > 0, int(math.ceil(reach)))
+    if where is not None:
+        near = near & where
+    return np.asarray(depth)[near]

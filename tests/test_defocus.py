@@ -247,6 +247,38 @@ def test_mirror_footprint_confines_the_blurred_reflection(method):
     np.testing.assert_allclose(out.sum(), rgb.sum(), rtol=1e-2)
 
 
+def test_window_covers_the_mirror_extension_within_reach():
+    # A mirror on the focal plane shows a virtual scene at c = 2 px; just past its right edge the
+    # extended plane shows an object at c = 10 px (`Mirror.depth` beyond the footprint), which a
+    # blurred mirror edge gathers from; another at c = 12 px lies 37 px from the footprint, out
+    # of reach (twice the window). The window comes from the footprint and what is within reach:
+    # 10 px, bucketed to 12, not clamped; a given window of 4 px reports the clamp.
+    n = 96
+    cam = camera(n, aperture=0.1)
+    cover = np.zeros((n, n))
+    cover[40:56, 40:56] = 1.0
+    c = np.full((n, n), 2.0)
+    c[40:56, 56:59] = 10.0
+    c[0:3, 0:3] = 12.0
+    mirror = dofjax.Mirror(coverage=cover, radiance=np.ones((n, n, 3)),
+                           depth=depth_for_coc(c, cam))
+    rgb, depth = cover[..., None] * np.ones(3), np.full((n, n), FOCUS)
+    _, info = defocus(rgb, depth, cam, mirror=mirror, return_info=True)
+    assert info.max_abs_coc == pytest.approx(10.0, rel=1e-6)
+    assert info.window == 12.0 and not info.clamped
+    with pytest.warns(DefocusWarning, match="largest CoC radius is 10 px"):
+        _, info = defocus(rgb, depth, cam, mirror=mirror, window=4, return_info=True)
+    assert info.clamped
+    # the fit's automatic window (target px, over its bounds) sees the same depths
+    from dofjax._fit import _auto_window, _Extras
+    extras = _Extras(reflection=None, reflection_depth=None, layers=None, mirror=mirror)
+    u = 1.0 / FOCUS  # bounds of one point: the window is the largest |c| at this camera
+    k = float(cam.pixel_scale)
+    assert _auto_window(depth, np.ones((n, n)), extras, k, (u, u), 0.1, 64.0, 1) == (
+        pytest.approx(10.0, rel=1e-6))
+    assert _auto_window(depth, np.ones((n, n)), extras, k, (u, u), 0.1, 8.0, 1) == 8.0
+
+
 @pytest.mark.parametrize("method", ["pyramid", "sliced", "lens"])
 def test_defocused_mirror_keeps_the_reflections_energy_and_range(method):
     # The mirror itself out of focus (c = 2.5 px, its edge blurred: the lens method's reads of
