@@ -8,7 +8,7 @@ import scipy.signal
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from dofjax import Camera, coc_radius, defocus_fn
-from dofjax._kernels import R0, soft_kernel
+from dofjax._kernels import R0, filtered_kernel, soft_kernel
 
 N = 24
 SETTINGS = settings(max_examples=8, deadline=None,
@@ -52,7 +52,10 @@ def test_constant_depth_equals_scipy_convolution(method, levels, rgb, data, near
     c = c if near else -c
     depth = np.full((N, N), depth_for_coc(c, cam))
     out = np.asarray(defocus_fn(rgb, depth, cam, window=4, method=method)(2.0, 1.0))
-    k = soft_kernel(float(np.hypot(c, R0)))
+    # the sliced method's levels: the disc filtered by the Catmull-Rom cubic
+    # (`filtered_kernel`); the pyramid's: the soft disc of radius sqrt(c^2 + R0^2)
+    k = (filtered_kernel(abs(c), flip=c > 0) if method == "sliced"
+         else soft_kernel(float(np.hypot(c, R0))))
     ref = np.stack([scipy.signal.convolve2d(rgb[..., i], k, mode="same") for i in range(3)], -1)
     m = 5
     np.testing.assert_allclose(out[m:-m, m:-m], ref[m:-m, m:-m], atol=1e-9)
