@@ -21,9 +21,10 @@
    the Catmull-Rom cubic (the pixel grid's view of the lens's sharp-edged disc: a crisper rim
    than DESIGN.md's 1 px soft ramp, and a second moment nearer the disc's own) on the taps of
    the soft kernel of radius sqrt(m^2 + R0^2), normalised by its discrete sum (energy is
-   conserved). Against the lens-sampling reference it beat the soft disc on 32 of 36 scene /
-   input rows at max |c| 12 and on every scene at max |c| 2 (6-24 % lower RMSE), at the same
-   taps (benchmarks/README.md, "Level kernels: the disc seen by the pixel grid").
+   conserved). Against the lens-sampling reference it beat the soft disc on 30 of 36 scene /
+   input rows at max |c| 12 (6 within 0.0005 worse) and by 7-18 % on the 4 scenes tried at max
+   |c| 2, at the same taps (benchmarks/README.md, "Level kernels: the disc seen by the pixel
+   grid").
 3. Slices are composited front to back, one `lax.scan` per run of levels that share a resolution
    and blur method (compiles in seconds; reverse mode stores one carry per slice; a
    `lax.switch` on the level's kernel inside the scan pays each level only its own taps; the
