@@ -136,65 +136,6 @@ def cell_kernel(rho: float, blades, rotation: float, ratio: float, cell: tuple[i
     return np.ascontiguousarray(k / k.sum())
 
 
-def _catmull_rom(x: np.ndarray) -> np.ndarray:
-    """The Catmull-Rom cubic: interpolating (1 at 0, 0 at the other integers), support 2, and
-    no second moment of its own."""
-    x = np.abs(x)
-    near = (1.5 * x - 2.5) * x * x + 1.0
-    far = ((-0.5 * x + 2.5) * x - 4.0) * x + 2.0
-    return np.where(x < 1.0, near, np.where(x < 2.0, far, 0.0))
-
-
-@functools.lru_cache(maxsize=1024)
-def filtered_kernel(radius: float, blades: int | None = None, rotation: float = 0.0,
-                    ratio: float = 1.0, cell: tuple[int, int] | None = None,
-                    flip: bool = False, support: float | None = None) -> np.ndarray:
-    """The sliced method's kernel of a level: the aperture shape of radius `radius` px (the
-    CoC itself, no floor) as the pixel grid sees it, normalised by its discrete sum (float64).
-
-    The shape's indicator on a fine sub-grid (up to 16 x 16 samples per pixel), filtered by the
-    separable Catmull-Rom cubic (an interpolating kernel: the sharp image between its samples is
-    reconstructed without extra blur, so the filter adds no second moment of its own and keeps
-    the rim crisp), kept on the taps of `soft_kernel(sqrt(radius^2 + R0^2))` (the same support
-    and cost; dropping the cubic's faint negative outer lobe adds ~0.25 px^2 to the disc's
-    radius^2 / 2, against the soft disc's ~0.45). Against the lens-sampling reference this beat
-    the soft disc as the sliced method's level kernel (benchmarks/README.md, "Level kernels:
-    the disc seen by the pixel grid").
-    Radius 0 is the delta. `cell` = (k, K): sector k of K of the shape (on the sub-grid), as
-    `cell_kernel`. Rows are image rows (y down); `flip`: the point reflection (near field).
-    `support`: the radius whose soft kernel's taps are kept (default `radius`); a fixed support
-    makes the kernel continuous in `radius` (the sub-samples' coverage of the edge is a ramp
-    1/16 px wide), so a second moment can be matched exactly by bisection.
-    """
-    support = radius if support is None else support
-    footprint = soft_kernel(float(math.hypot(support, R0)), blades, rotation, ratio) > 0.0
-    n = footprint.shape[0]
-    h = n // 2
-    sub = int(np.clip(512 // (n + 4), 2, 16))  # sub-samples per px (fewer for huge kernels)
-    taps = np.arange(-h, h + 1, dtype=np.float64)
-    reach = h + 2  # the cubic reads 2 px beyond the outermost tap
-    fine = (np.arange(-reach * sub, (reach + 1) * sub) + 0.5) / sub - 0.5
-    fine = fine[(fine > -reach - 0.5) & (fine < reach + 0.5)]
-    xx, yy = np.meshgrid(fine, fine)  # rows: y down
-    # each sub-sample's coverage of the shape: a ramp one sub-sample wide across the edge
-    inside = np.clip((radius - radial_function(xx, -yy, blades, rotation, ratio)) * sub + 0.5,
-                     0.0, 1.0)
-    if cell is not None:
-        inside = inside * (_sector(xx, -yy, cell[1], rotation) == cell[0])
-    if radius <= 0.0 or not inside.any():  # the delta
-        return np.ones((1, 1))
-    weights = _catmull_rom(taps[:, None] - fine[None, :])  # (taps, fine samples)
-    k = weights @ inside @ weights.T
-    k = np.where(footprint, k, 0.0)
-    # taps equal by symmetry made exactly equal (the sliced blur shares one multiplication
-    # between equal taps; the matrix products leave them a few ulps apart)
-    scale = np.abs(k).max()
-    k = np.round(k / scale * 2.0**36) * (scale / 2.0**36)
-    if flip:
-        k = k[::-1, ::-1]
-    return np.ascontiguousarray(k / k.sum())
-
-
 @functools.lru_cache(maxsize=64)
 def cell_weights(count: int, blades, rotation: float, ratio: float) -> tuple[float, ...]:
     """Area fractions of the aperture's sectors (k, count), k = 0 ... count - 1: the weights of

@@ -3,12 +3,11 @@
 1. Each source pixel (of the image, of every peeled layer, and of the mirror layer) has a signed
    CoC c = A k (1/z - 1/d). The signed level magnitudes `_kernels.MAGNITUDES` up to the window
    give depth slices ordered front to back (+window ... 0 ... -window). A source is split between
-   the two slices that bracket it with weights linear in q = sign(c) c^2 (the kernels' second
-   moments grow like c^2 / 2 plus a constant, so the blend has about the second moment of the
-   source's own kernel) and the weights are smooth in c at c = 0 (the gradient exists on the
-   focal plane: no radius floor is needed, level 0 is the delta).
+   the two slices that bracket it with weights linear in q = sign(c) c^2, so the blend of the two
+   soft kernels has the second moment of the source's own kernel (radius sqrt(c^2 + R0^2)) and
+   the weights are smooth in c at c = 0 (the gradient exists on the focal plane).
 2. Each slice holds premultiplied colour and front/back coverage and is convolved with its level's
-   kernel by shifted sums, channel by
+   soft kernel (normalised by its discrete sum: energy is conserved) by shifted sums, channel by
    channel, from sources padded once by the widest blur's border (no per-slice concatenation or
    padding: at 512 x 512 those made the forward pass 1.4-1.8x slower). A level of
    magnitude m is blurred at 1/s of the resolution (s the largest power of two with
@@ -17,14 +16,6 @@
    every disc kernel is at most 7 x 7 taps and the cost per slice falls as 1/s^2: a radius-16
    disc costs what a radius-2 disc does at 1/64 of the pixels. Only levels |m| <= 3 run at full
    resolution: a full-resolution slice costs ~6 ms at 512 x 512 in memory traffic alone.
-   A level's kernel (`_kernels.filtered_kernel`) is the aperture shape of radius |m| filtered by
-   the Catmull-Rom cubic (the pixel grid's view of the lens's sharp-edged disc: a crisper rim
-   than DESIGN.md's 1 px soft ramp, and a second moment nearer the disc's own) on the taps of
-   the soft kernel of radius sqrt(m^2 + R0^2), normalised by its discrete sum (energy is
-   conserved). Against the lens-sampling reference it beat the soft disc on 30 of 36 scene /
-   input rows at max |c| 12 (6 within 0.0005 worse) and by 7-18 % on the 4 scenes tried at max
-   |c| 2, at the same taps (benchmarks/README.md, "Level kernels: the disc seen by the pixel
-   grid").
 3. Slices are composited front to back, one `lax.scan` per run of levels that share a resolution
    and blur method (compiles in seconds; reverse mode stores one carry per slice; a
    `lax.switch` on the level's kernel inside the scan pays each level only its own taps; the
@@ -83,7 +74,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._camera import Camera, coc_radius
-from ._kernels import MAGNITUDES, bucket_window, filtered_kernel
+from ._kernels import MAGNITUDES, R0, bucket_window, cell_kernel
 from ._numerics import safe_div, safe_sqrt
 from ._rgbd import Layers
 
@@ -172,27 +163,21 @@ def _plan(window, blades, rotation, ratio, min_radius=MIN_LOW_RADIUS, cell=None)
     distinct = sorted(set(factors))
     kernels = []
     for m, s in zip(levels, factors):
-        radius = float(abs(m))
+        rho = float(np.sqrt(m * m + R0 * R0))
         flip = bool(m > 0)  # near field is the point reflection of the far field
         if s > 1:
             # the slice returns to full resolution through every finer run's resolution
             finer = [f for f in distinct if f <= s]
             steps = tuple(b // a for a, b in zip(finer[:-1], finer[1:]))[::-1]
-            full = filtered_kernel(radius, blades, rotation, ratio, cell, flip)
+            full = cell_kernel(rho, blades, rotation, ratio, cell, flip=flip)
             goal = (_kernel_variance(full) - _resample_variance(s, steps)) / (s * s)
-            lo, hi = 0.0, radius / s
-            support = hi  # one set of taps for every candidate: the variance is continuous
-
-            def coarse(r):
-                return filtered_kernel(round(r, 9), blades, rotation, ratio, cell, flip,
-                                       support)
-
+            lo, hi = R0, rho / s
             for _ in range(40):  # bisection on the coarse radius
                 mid = 0.5 * (lo + hi)
-                lo, hi = (mid, hi) if _kernel_variance(coarse(mid)) < goal else (lo, mid)
-            kernels.append(coarse(0.5 * (lo + hi)))
-            continue
-        kernels.append(filtered_kernel(radius, blades, rotation, ratio, cell, flip))
+                v = _kernel_variance(cell_kernel(mid, blades, rotation, ratio, cell, flip=flip))
+                lo, hi = (mid, hi) if v < goal else (lo, mid)
+            rho = round(0.5 * (lo + hi), 9)
+        kernels.append(cell_kernel(rho, blades, rotation, ratio, cell, flip=flip))
     return levels, tuple(factors), tuple(kernels)
 
 

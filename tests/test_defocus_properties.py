@@ -8,7 +8,7 @@ import scipy.signal
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from dofjax import Camera, coc_radius, defocus_fn
-from dofjax._kernels import R0, filtered_kernel, soft_kernel
+from dofjax._kernels import R0, soft_kernel
 
 N = 24
 SETTINGS = settings(max_examples=8, deadline=None,
@@ -52,10 +52,7 @@ def test_constant_depth_equals_scipy_convolution(method, levels, rgb, data, near
     c = c if near else -c
     depth = np.full((N, N), depth_for_coc(c, cam))
     out = np.asarray(defocus_fn(rgb, depth, cam, window=4, method=method)(2.0, 1.0))
-    # the sliced method's levels: the disc filtered by the Catmull-Rom cubic
-    # (`filtered_kernel`); the pyramid's: the soft disc of radius sqrt(c^2 + R0^2)
-    k = (filtered_kernel(abs(c), flip=c > 0) if method == "sliced"
-         else soft_kernel(float(np.hypot(c, R0))))
+    k = soft_kernel(float(np.hypot(c, R0)))
     ref = np.stack([scipy.signal.convolve2d(rgb[..., i], k, mode="same") for i in range(3)], -1)
     m = 5
     np.testing.assert_allclose(out[m:-m, m:-m], ref[m:-m, m:-m], atol=1e-9)
@@ -71,7 +68,7 @@ def grad_energy(img):
 # so does the hard disc integrated over pixels, by 4 %), and on no 10 % step
 # (`benchmarks/monotonicity.py`, results/monotonicity.md). The level blend of the sliced and
 # pyramid methods adds its own dips (pinned below) and stays monotone from 15 % on (0 rises in
-# 800 + 400 random cases of this test's distribution for each method, scratch runs). |c| stays below
+# 800 random cases of this test's distribution for each method, a scratch run). |c| stays below
 # the window (7.7 px at most, window 8): a clamped CoC does not grow with the aperture, which
 # would turn any step into a smaller one.
 @METHODS
@@ -130,11 +127,10 @@ def test_exact_soft_disc_sharpens_on_some_small_steps():
 @pytest.mark.xfail(
     strict=True, raises=AssertionError,
     reason="known defect of the level blend: between two levels a source's kernel is a mix of "
-    "two discs (two half-strength edges), smoother than the one disc it stands for "
-    "(gradient energy 0.70x the exact disc's at |c| 2.7 px, benchmarks/monotonicity.py), and "
+    "two soft discs (two half-strength edges), smoother than the one disc it stands for "
+    "(gradient energy 0.65x the exact disc's at |c| 2.7 px, benchmarks/monotonicity.py), and "
     "sharpening again as |c| reaches the next level. Here the exact model gets 5.5 % smoother "
-    "(test_exact_soft_disc_sharpens_on_some_small_steps), the sliced method 2.1 % and the pyramid "
-    "1.6 % sharper. Strict: "
+    "(test_exact_soft_disc_sharpens_on_some_small_steps) and both methods 1.6 % sharper. Strict: "
     "it fails the suite (XPASS) the day the blend is replaced.",
 )
 @METHODS

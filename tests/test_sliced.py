@@ -10,7 +10,7 @@ import scipy.signal
 
 import dofjax
 from dofjax import Camera
-from dofjax._kernels import R0, filtered_kernel, second_moment, soft_kernel
+from dofjax._kernels import R0, soft_kernel
 from dofjax._sliced import sliced_defocus, sliced_defocus_adjoint, sliced_defocus_jacobian
 
 N = 32
@@ -29,12 +29,12 @@ def depth_for_coc(c, cam):
 
 @pytest.mark.parametrize("c", [-3.0, -1.0, 0.0, 2.0, 3.0])
 def test_constant_depth_on_a_level_equals_one_convolution(c):
-    # levels |c| <= 3 are blurred at full resolution: exactly the level's kernel
+    # levels |c| <= 3 are blurred at full resolution: exactly the level's soft kernel
     cam = camera()
     rgb = np.random.default_rng(1).random((N, N, 3))
     depth = np.full((N, N), depth_for_coc(c, cam))
     out = np.asarray(sliced_defocus(rgb, depth, cam, window=4))
-    k = filtered_kernel(abs(c), flip=c > 0)
+    k = soft_kernel(float(np.hypot(c, R0)), flip=c > 0)
     ref = np.stack([scipy.signal.convolve2d(rgb[..., i], k, mode="same") for i in range(3)], -1)
     m = 6
     np.testing.assert_allclose(out[m:-m, m:-m], ref[m:-m, m:-m], atol=1e-9)
@@ -52,7 +52,7 @@ def test_reduced_resolution_level_approximates_its_convolution(c):
     rgb = np.stack([scipy.ndimage.gaussian_filter(rng.random((n, n)), 2.0) for _ in range(3)], -1)
     depth = np.full((n, n), depth_for_coc(c, cam))
     out = np.asarray(sliced_defocus(rgb, depth, cam, window=16))
-    k = filtered_kernel(abs(c), flip=c > 0)
+    k = soft_kernel(float(np.hypot(c, R0)), flip=c > 0)
     ref = np.stack([scipy.signal.convolve2d(rgb[..., i], k, mode="same") for i in range(3)], -1)
     m = 32
     err = out[m:-m, m:-m] - ref[m:-m, m:-m]
@@ -201,26 +201,13 @@ def test_hidden_switch_is_checked():
     assert np.max(np.abs(on - off)) > 0.01
 
 
-@pytest.mark.parametrize("m", [1.0, 2.0, 3.0, 6.0])
-def test_level_kernel_is_the_filtered_disc(m):
-    # The sliced levels' kernels: the disc of radius m filtered by the Catmull-Rom cubic, on the
-    # soft disc's taps, normalised. Energy 1; the disc's symmetries; the near field the point
-    # reflection of the far field; a second moment between the continuous disc's (m^2 / 2: the
-    # cubic adds none) and the soft disc's (its 1 px ramp and radius floor add ~0.45 px^2), as
-    # on the lens-sampling reference (benchmarks/README.md, "The level kernels at small blur").
-    k = filtered_kernel(m)
-    soft = soft_kernel(float(np.hypot(m, R0)))
-    assert k.shape == soft.shape and np.array_equal(k != 0.0, soft != 0.0)
-    assert k.sum() == pytest.approx(1.0, abs=1e-12)
-    np.testing.assert_array_equal(k, k.T)
-    np.testing.assert_array_equal(k, k[::-1])
-    np.testing.assert_array_equal(filtered_kernel(m, flip=True), k[::-1, ::-1])
-    assert m * m / 2 < second_moment(k) < second_moment(soft)
-    # continuous in the radius on fixed taps (what the reduced-resolution levels' moment
-    # matching bisects)
-    a, b = filtered_kernel(m, support=m + 0.5), filtered_kernel(m + 1e-4, support=m + 0.5)
-    assert 0.0 < np.abs(a - b).max() < 1e-4
-    np.testing.assert_array_equal(filtered_kernel(0.0), np.ones((1, 1)))
+def test_matches_pyramid_on_constant_depth_levels():
+    cam = camera()
+    rgb = np.random.default_rng(3).random((N, N, 3))
+    depth = np.full((N, N), depth_for_coc(-2.0, cam))
+    a = np.asarray(dofjax.defocus(rgb, depth, cam, method="sliced"))
+    b = np.asarray(dofjax.defocus(rgb, depth, cam, method="pyramid"))
+    np.testing.assert_allclose(a[6:-6, 6:-6], b[6:-6, 6:-6], atol=1e-9)
 
 
 def assert_grads_match_fd(loss, p, steps=(1e-5, 1e-7)):
@@ -439,26 +426,23 @@ def test_float32_image_of_float64_parameters_differentiates():
         f = dofjax.defocus_fn(rgb.astype(dtype), depth.astype(dtype), camera(aperture_radius=0.05),
                               window=8, method="sliced")
 
-        def loss(d, a):  # a weighted sum, in float64
-            return jnp.sum(weight * f(d, a).astype(jnp.float64))
+        def loss(d, a):  # summed in float64
+            return jnp.sum(f(d, a).astype(jnp.float64))
 
         assert f(*p).dtype == dtype
         return (jax.jit(jax.grad(loss, argnums=(0, 1)))(*p),
                 jax.jit(jax.jacfwd(loss, argnums=(0, 1)))(*p))
 
-    # Weighted: the plain sum of the image is its energy, conserved, so its focus derivative is
-    # a residual ~1e-6 of the terms, below what float32 rounding of the terms leaves (the
-    # float32 gradients were within 2.3e-4 and 1.0e-3 of float64's for the soft-disc and the
-    # filtered level kernels): that compared rounding noise, not the derivative.
-    weight = jnp.asarray(np.random.default_rng(6).random((N, N, 3)))
     (rev, fwd), (rev64, fwd64) = grads(np.float32), grads(np.float64)
-    # Reverse mode runs the model's adjoint, forward mode its Jacobian; each is compared with the
-    # float64 image's (where the two agree to 1e-10). Measured: within 1.5e-6 (relative).
+    # Reverse mode runs the model's adjoint, forward mode its Jacobian: two float32 computations
+    # of a sum whose terms cancel (energy is conserved; d loss / d focus is ~1e-3 of the terms),
+    # so each is compared with the float64 image's (where the two agree to 1e-11). Measured:
+    # both within 2.3e-4 of it (relative).
     for r, w, r64, w64 in zip(rev, fwd, rev64, fwd64):
         assert float(r64) == pytest.approx(float(w64), rel=1e-10)
         assert np.isfinite(float(r)) and float(r) != 0.0
-        assert float(r) == pytest.approx(float(r64), rel=1e-5)
-        assert float(w) == pytest.approx(float(r64), rel=1e-5)
+        assert float(r) == pytest.approx(float(r64), rel=1e-3)
+        assert float(w) == pytest.approx(float(r64), rel=1e-3)
 
 
 def test_peeled_layers_reveal_the_hidden_surface():
@@ -527,7 +511,7 @@ def test_reflection_is_seen_through_its_own_mirror():
     rdepth = np.full((N, N), depth_for_coc(-3.0, cam))
     out = np.asarray(dofjax.defocus(refl, depth, cam, reflection=refl, reflection_depth=rdepth,
                                     method="sliced", window=4))
-    k = filtered_kernel(3.0)
+    k = soft_kernel(float(np.hypot(3.0, R0)))
     ref = np.stack([scipy.signal.convolve2d(refl[..., i], k, mode="same") for i in range(3)], -1)
     m = 6
     np.testing.assert_allclose(out[m:-m, m:-m], ref[m:-m, m:-m], atol=1e-9)
