@@ -91,7 +91,7 @@ from ._kernels import (
 )
 from ._lens import LENS_SAMPLES, lens_defocus, levels as lens_levels
 from ._numerics import box_pool, inverse_depth
-from ._rgbd import RGBD, Layers, Mirror, mirror_depths_seen
+from ._rgbd import RGBD, Layers, Mirror, grow_by_mirror_reach
 from ._sliced import sliced_defocus, sliced_defocus_adjoint, sliced_defocus_jacobian
 
 METHODS = ("pyramid", "sliced", "lens")
@@ -852,16 +852,11 @@ def defocus(
         max_abs = largest(zs)
         if mirror is not None:
             # the virtual scene on the footprint and its extension within reach of the footprint
-            # (a blurred mirror edge gathers from it): reach = twice the window, which grows
-            # with what the extension adds (window buckets: a few rounds at most)
-            reach = 0.0
-            while True:
-                w_reach = bucket_window(window * s if window is not None else max_abs)
-                if 2.0 * w_reach <= reach:
-                    break
-                reach = 2.0 * w_reach
-                max_abs = max(max_abs, largest(
-                    [mirror_depths_seen(mirror.coverage, mirror.depth, reach)]))
+            # (a blurred mirror edge gathers from it): reach = twice the window
+            max_abs = grow_by_mirror_reach(
+                max_abs, lambda z: largest([z]),
+                lambda v: 2.0 * bucket_window(window * s if window is not None else v),
+                mirror.coverage, mirror.depth)
     reported = None if max_abs is None else max_abs / s
     if window is None:
         if max_abs is None:

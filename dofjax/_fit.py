@@ -75,7 +75,7 @@ from ._defocus import as_mirror, supersampling
 from ._kernels import bucket_window
 from ._linalg import ThinQR, unit_column_svd
 from ._numerics import box_pool as _pool, inverse_depth, safe_div
-from ._rgbd import RGBD, Layers, Mirror, mirror_depths_seen
+from ._rgbd import RGBD, Layers, Mirror, grow_by_mirror_reach
 
 PARAMS = ("focus_distance", "aperture_radius")
 SOLVERS = ("lm", "gauss_newton", "dogleg", "bfgs")
@@ -1373,16 +1373,14 @@ def _auto_window(depth_a, weight, extras, k: float, u_bounds, a_hi: float, max_w
     depth the defocus sees, at most `max_window`. With a mirror layer that includes its
     extension past the footprint within reach of it (`mirror_depths_seen`, as `defocus` does:
     twice the window, in the sharp input's px, s per target px)."""
-    depths = _depths_seen(depth_a, weight, extras)
-    win = min(_reach(depths, k, u_bounds, a_hi), max_window)
+    def window_of(depths):  # (the largest |CoC| of a union is the larger of the parts')
+        return min(_reach(depths, k, u_bounds, a_hi), max_window)
+
+    win = window_of(_depths_seen(depth_a, weight, extras))
     if extras is None or extras.mirror is None:
         return win
-    m, reach = extras.mirror, 0.0
-    while 2.0 * bucket_window(win) * s > reach:
-        reach = 2.0 * bucket_window(win) * s
-        ext = mirror_depths_seen(m.coverage, m.depth, reach, where=weight > 0)
-        win = min(_reach(np.concatenate([depths, ext]), k, u_bounds, a_hi), max_window)
-    return win
+    return grow_by_mirror_reach(win, window_of, lambda w: 2.0 * bucket_window(w) * s,
+                                extras.mirror.coverage, extras.mirror.depth, where=weight > 0)
 
 
 def _depth_modes(fracs: np.ndarray, n: int = _SCAN_MODES) -> np.ndarray:

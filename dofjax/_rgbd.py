@@ -110,3 +110,19 @@ def mirror_depths_seen(coverage, depth, reach: float, where=None) -> np.ndarray:
     if where is not None:
         near = near & where
     return np.asarray(depth)[near]
+
+
+def grow_by_mirror_reach(value: float, measure, reach_of, coverage, depth, where=None) -> float:
+    """`value` (a window or a largest |CoC|, px, of every other depth) raised to cover the mirror
+    layer's virtual depths within reach of its footprint (`mirror_depths_seen`): `measure(z)` is
+    the value of depths z, `reach_of(value)` the reach (px) a value implies. The reach grows with
+    the value and the value with the depths it takes in, so the two are iterated until the reach
+    stops growing (window buckets: a few rounds at most). An empty footprint adds nothing."""
+    reach = 0.0
+    while (grown := reach_of(value)) > reach:
+        reach = grown
+        seen = mirror_depths_seen(coverage, depth, reach, where)
+        if seen.size == 0:
+            break
+        value = max(value, measure(seen))
+    return value

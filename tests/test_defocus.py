@@ -277,6 +277,14 @@ def test_window_covers_the_mirror_extension_within_reach():
     assert _auto_window(depth, np.ones((n, n)), extras, k, (u, u), 0.1, 64.0, 1) == (
         pytest.approx(10.0, rel=1e-6))
     assert _auto_window(depth, np.ones((n, n)), extras, k, (u, u), 0.1, 8.0, 1) == 8.0
+    # a mirror layer without a footprint adds no depths (it raised on the empty set before)
+    empty = dofjax.Mirror(coverage=np.zeros((n, n)), radiance=mirror.radiance, depth=mirror.depth)
+    _, info = defocus(rgb, depth_for_coc(np.full((n, n), 3.0), cam), cam, mirror=empty,
+                      return_info=True)
+    assert info.max_abs_coc == pytest.approx(3.0, rel=1e-6) and info.window == 3.0
+    extras = _Extras(reflection=None, reflection_depth=None, layers=None, mirror=empty)
+    assert _auto_window(depth, np.ones((n, n)), extras, k, (u, u), 0.1, 64.0, 1) == (
+        pytest.approx(0.0, abs=1e-9))
 
 
 @pytest.mark.parametrize("method", ["pyramid", "sliced", "lens"])
