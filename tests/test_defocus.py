@@ -496,6 +496,10 @@ def test_seed_baseline_is_the_hard_disc_normalised_by_pi_r2():
         (dict(kw=dict(ratio=0.0)), "ratio"),
         (dict(kw=dict(reflection=np.zeros((24, 24, 3)))), "together"),
         (dict(kw=dict(window=-1.0)), "window must be > 0"),
+        # checked before the window is used to reach past a mirror's footprint
+        (dict(kw=dict(window=float("nan"), mirror=dofjax.Mirror(
+            coverage=np.ones((24, 24)), radiance=np.zeros((24, 24, 3)),
+            depth=np.full((24, 24), 3.0)))), "window must be > 0"),
     ],
 )
 def test_bad_input_errors(change, match):
