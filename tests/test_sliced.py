@@ -178,6 +178,42 @@ def test_hidden_background_estimate_is_a_fixed_layer_of_the_images():
         assert float(g_rev[i]) == pytest.approx(float(g_fwd[i]), rel=1e-10)
 
 
+def test_hidden_background_estimate_is_not_lit_by_an_hdr_rim():
+    # An HDR emitter in front of a dim backdrop (0.1), anti-aliased as a supersampled render
+    # gives it: the rim pixels mix the two colours but carry the backdrop's depth (their
+    # centres miss the disc), so they are among the far pixels the estimate is filled from.
+    # In a plain pull-push mean a few of them lit the estimate behind a radiance-20 emitter to
+    # ~10 (100x the backdrop; a defocus then showed a bright ring inside the emitter's bokeh).
+    # Weighted 1 / peak^2, a pixel brighter than 1 pulls the fill by at most ~1, and a
+    # brighter emitter by less; an area that is bright throughout (a sky of 5 behind a dark
+    # square) still fills with its own colour.
+    from dofjax._hidden import hidden_layers
+
+    n = 32
+    yy, xx = np.mgrid[:n, :n] + 0.5
+    r = np.hypot(yy - 16.0, xx - 16.0)
+    cover = np.clip(5.0 - r, 0.0, 1.0)
+    depth = np.where(r < 4.0, 2.0, 3.0)
+    assert np.sum((r >= 4.0) & (cover > 0.0)) > 20  # far rim pixels of mixed colour
+    for peak, most in [(20.0, 1.2), (1e6, 0.1001)]:
+        rgb = np.repeat((0.1 + (peak - 0.1) * cover)[..., None], 3, axis=-1)
+        for dtype in (np.float32, np.float64):
+            layers = hidden_layers(jnp.asarray(rgb, dtype), jnp.asarray(depth, dtype), 8.0)
+            alpha, colour = np.asarray(layers.alpha[1]), np.asarray(layers.rgb[1])
+            assert alpha[16, 16] > 0.9  # the emitter hides an estimated backdrop ...
+            behind = colour[alpha > 0.0]
+            assert np.all(np.isfinite(behind)) and 0.1 - 1e-6 < behind.min()
+            assert behind.max() < most  # ... lit by its rim by at most ~1
+    rgb = np.full((n, n, 3), 5.0)
+    rgb[10:22, 10:22] = 0.2
+    depth = np.full((n, n), 3.0)
+    depth[10:22, 10:22] = 1.5
+    layers = hidden_layers(jnp.asarray(rgb), jnp.asarray(depth), 8.0)
+    alpha = np.asarray(layers.alpha[1])
+    assert alpha.max() > 0.5
+    np.testing.assert_allclose(np.asarray(layers.rgb[1])[alpha > 0.0], 5.0, rtol=1e-12)
+
+
 def test_hidden_switch_is_checked():
     cam = camera()
     rgb = np.random.default_rng(2).random((N, N, 3))
