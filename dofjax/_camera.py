@@ -47,6 +47,59 @@ def _as_vec3(x) -> Array:
     return jnp.asarray(x, dtype=jnp.result_type(float)).reshape(3)
 
 
+# What `Camera(...)` accepts of each scalar leaf (the pose is checked by `_check_pose`).
+_RULES = {
+    "fov": (lambda v: (v > 0.0) & (v < 180.0), "must be in (0, 180) degrees"),
+    "focus_distance": (lambda v: v > 0.0, "must be > 0 (in front of the lens)"),
+    "aperture_radius": (lambda v: v >= 0.0, "must be >= 0"),
+}
+
+
+def _check_leaves(camera, names, prefix: str) -> None:
+    """ValueError `{prefix}{name}: {rule}, got {value}` for the first of the leaves `names` of
+    `camera` that is concrete (not traced) and breaks its rule: NaN and inf included (a batch
+    of cameras, leaves with a leading axis, is checked element by element)."""
+    for name in names:
+        value = getattr(camera, name)
+        if name in _RULES:
+            ok, why = _RULES[name]
+            if _is_concrete(value):
+                v = np.asarray(value, dtype=np.float64)
+                bad = ~(np.isfinite(v) & ok(v))
+                if np.any(bad):
+                    raise ValueError(f"{prefix}{name}: {why}, got {v[bad].flat[0].item()!r}")
+        elif _is_concrete(value) and not bool(jnp.all(jnp.isfinite(value))):
+            raise ValueError(f"{prefix}{name}: must be finite, got {value.tolist()!r}")
+    if any(n in names for n in ("eye", "target", "up")):
+        _check_pose(camera, prefix)
+
+
+def _check_pose(camera, prefix: str) -> None:
+    eye, target, up = camera.eye, camera.target, camera.up
+    if not (_is_concrete(eye) and _is_concrete(target) and _is_concrete(up)):
+        return
+    forward = target - eye
+    if float(jnp.linalg.norm(forward)) == 0.0:
+        raise ValueError(f"{prefix}target: must differ from eye")
+    if float(jnp.linalg.norm(jnp.cross(forward, up))) <= 1e-9 * float(
+        jnp.linalg.norm(forward) * jnp.linalg.norm(up)
+    ):
+        raise ValueError(
+            f"{prefix}up: must not be parallel to the view direction, got up={up.tolist()} and "
+            f"target - eye = {forward.tolist()}"
+        )
+
+
+def check_camera(camera, where: str | None = None) -> None:
+    """The checks of `Camera(...)` again, for a camera made some other way (`eqx.tree_at`,
+    a deserialised pytree): `[{where}: ]camera.{name}: {rule}, got {value}` for concrete leaves
+    (traced ones are the caller's business)."""
+    prefix = f"{where}: " if where else ""
+    if not isinstance(camera, Camera):
+        raise TypeError(f"{prefix}camera must be a dofjax.Camera, got {type(camera).__name__}")
+    _check_leaves(camera, _LEAVES, f"{prefix}camera.")
+
+
 class Camera(eqx.Module):
     """A thin-lens camera: pose, horizontal field of view, focus distance and aperture radius.
 
@@ -75,32 +128,7 @@ class Camera(eqx.Module):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | jnp.integer) or value < 1:
                 raise ValueError(f"Camera.{name}: must be an integer >= 1, got {value!r}")
-        checks = (
-            ("fov", lambda v: 0.0 < v < 180.0, "must be in (0, 180) degrees"),
-            ("focus_distance", lambda v: v > 0.0, "must be > 0 (in front of the lens)"),
-            ("aperture_radius", lambda v: v >= 0.0, "must be >= 0"),
-        )
-        for name, ok, why in checks:
-            value = getattr(self, name)
-            if _is_concrete(value):
-                v = float(value)
-                if not math.isfinite(v) or not ok(v):
-                    raise ValueError(f"Camera.{name}: {why}, got {v!r}")
-        for name in ("eye", "target", "up"):
-            value = getattr(self, name)
-            if _is_concrete(value) and not bool(jnp.all(jnp.isfinite(value))):
-                raise ValueError(f"Camera.{name}: must be finite, got {value.tolist()!r}")
-        if _is_concrete(self.eye) and _is_concrete(self.target) and _is_concrete(self.up):
-            forward = self.target - self.eye
-            if float(jnp.linalg.norm(forward)) == 0.0:
-                raise ValueError("Camera.target: must differ from Camera.eye")
-            if float(jnp.linalg.norm(jnp.cross(forward, self.up))) <= 1e-9 * float(
-                jnp.linalg.norm(forward) * jnp.linalg.norm(self.up)
-            ):
-                raise ValueError(
-                    f"Camera.up: must not be parallel to the view direction, got up="
-                    f"{self.up.tolist()} and target - eye = {forward.tolist()}"
-                )
+        _check_leaves(self, _LEAVES, "Camera.")
 
     @classmethod
     def from_photographic(
@@ -152,7 +180,10 @@ class Camera(eqx.Module):
         )
 
     def replace(self, **changes) -> Camera:
-        """A copy with some array leaves changed (no validation, no recompilation).
+        """A copy with some array leaves changed (no validation, no recompilation: a model
+        evaluated at the edge of its domain, e.g. a finite difference at aperture 0, may step
+        past it; `render`, `render_reference`, `defocus` and `fit_focus` check the camera
+        they are given).
 
         Only the array fields: fov, focus_distance, aperture_radius, eye, target, up. width and
         height are static (they fix the compiled image shapes): build a new `Camera` for those.

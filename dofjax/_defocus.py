@@ -75,7 +75,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ._autodiff import dense_jacobian, tracing_forward_only
-from ._camera import Camera, check_margin
+from ._camera import Camera, check_camera, check_margin
 from ._hidden import hidden_layer, hidden_layers
 from ._kernels import (
     MAX_WINDOW,
@@ -195,8 +195,7 @@ def _shape_config(shape, blades, rotation, ratio):
 
 
 def _validate(rgb, depth, camera, reflection, reflection_depth, layers, mirror=None):
-    if not isinstance(camera, Camera):
-        raise TypeError(f"defocus: camera must be a dofjax.Camera, got {type(camera).__name__}")
+    check_camera(camera, "defocus")
     if rgb.ndim != 3 or rgb.shape[-1] != 3:
         raise ValueError(f"defocus: rgb must have shape (H, W, 3), got {rgb.shape}")
     h, w = rgb.shape[:2]
@@ -210,14 +209,6 @@ def _validate(rgb, depth, camera, reflection, reflection_depth, layers, mirror=N
         )
     _check_finite("rgb", rgb)
     _check_depth("depth", depth)
-    if _is_concrete(camera.aperture_radius):
-        a = float(camera.aperture_radius)
-        if not (math.isfinite(a) and a >= 0):
-            raise ValueError(f"defocus: camera.aperture_radius must be >= 0, got {a!r}")
-    if _is_concrete(camera.focus_distance):
-        d = float(camera.focus_distance)
-        if not (math.isfinite(d) and d > 0):
-            raise ValueError(f"defocus: camera.focus_distance must be > 0, got {d!r}")
     if (reflection is None) != (reflection_depth is None):
         raise ValueError("defocus: reflection and reflection_depth must be given together")
     if reflection is not None:

@@ -70,7 +70,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._autodiff import value_and_jacobian
-from ._camera import Camera, coc_radius
+from ._camera import Camera, check_camera, coc_radius
 from ._defocus import as_mirror, supersampling
 from ._kernels import bucket_window
 from ._linalg import ThinQR, unit_column_svd
@@ -1134,8 +1134,7 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
 
     `counts` maps an integer option's name to (value, least allowed value), `tolerances` a
     tolerance's name to its value (a real >= 0, or None for the default)."""
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a dofjax.Camera, got {type(camera).__name__}")
+    check_camera(camera)  # (the initial guess and the fixed values)
     if solver not in SOLVERS:
         raise ValueError(f"solver: must be one of {SOLVERS}, got {solver!r}")
     if loss not in LOSSES:

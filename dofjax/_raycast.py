@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._camera import Camera
+from ._camera import Camera, check_camera
 from ._intersect import (
     PRIMITIVES,
     Hit,
@@ -825,7 +825,6 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
         raise ValueError(f"render: layers must be None or an integer >= 1, got {layers!r}")
     if not isinstance(scene, Scene):
         raise TypeError(f"render: scene must be a dofjax.Scene, got {type(scene).__name__}")
-    if not isinstance(camera, Camera):
-        raise TypeError(f"render: camera must be a dofjax.Camera, got {type(camera).__name__}")
+    check_camera(camera, "render")
     closed = None if layers is None else _closed_triangles(scene)
     return _render(scene, camera, int(spp), None if layers is None else int(layers), closed)

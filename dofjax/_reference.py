@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Int
 
-from ._camera import Camera
+from ._camera import Camera, check_camera
 from ._sampling import (
     MAX_STRATIFIED,
     SAMPLERS,
@@ -77,8 +77,7 @@ def _validate(spp, shape, blades, rotation, ratio, chunk, sampler, camera, key):
         isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1
     ):
         raise ValueError(f"render_reference: chunk must be an integer >= 1 or None, got {chunk!r}")
-    if not isinstance(camera, Camera):
-        raise TypeError(f"render_reference: camera must be a dofjax.Camera, got {type(camera)}")
+    check_camera(camera, "render_reference")
     if not isinstance(key, jax.Array) or not (
         jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key) or key.dtype == jnp.uint32
     ):

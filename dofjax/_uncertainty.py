@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
-from ._camera import Camera
+from ._camera import Camera, check_camera
 from ._fit import PARAMS, DefocusModel, _check_images, _depth_weight, _reach, _validate
 
 
@@ -46,8 +46,7 @@ def _default_model(rgb, depth, camera, mask, bounds, window, max_window, defocus
 
 
 def _check_inputs(rgb, depth, camera, sigma, mask):
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a dofjax.Camera, got {type(camera).__name__}")
+    check_camera(camera)
     rgb_a, depth_a, s = _check_images(rgb, depth, camera)
     hw = depth_a.shape
     if s != 1:

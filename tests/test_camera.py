@@ -118,6 +118,45 @@ def test_camera_validation(kwargs, match):
         Camera(**base)
 
 
+def test_entry_points_check_a_camera_made_around_the_constructor():
+    # `Camera.replace` and eqx.tree_at skip the constructor's checks (a finite difference at
+    # aperture 0 steps past it), so every public entry point checks the camera it is given and
+    # names itself, the field and the value. Before, fit_focus fitted a guess behind the lens
+    # to focus -1.7e7, and render / render_reference drew a NaN field of view as background.
+    cam = Camera(width=8, height=8, fov=45.0, focus_distance=2.0, aperture_radius=0.1)
+    behind = cam.replace(focus_distance=-1.0)
+    no_fov = eqx.tree_at(lambda c: c.fov, cam, jnp.asarray(float("nan")))
+    no_aperture = cam.replace(aperture_radius=float("nan"))
+    scene = dofjax.scene_from_dict({"objects": [
+        {"type": "sphere", "center": [0, 0, 3], "radius": 1, "material": "m"}],
+        "materials": {"m": {"diffuse": 0.5}}})
+    rgb, depth = np.full((8, 8, 3), 0.5), np.full((8, 8), 3.0)
+    calls = [
+        (lambda c: dofjax.render(scene, c), "render: camera"),
+        (lambda c: dofjax.render_reference(scene, c, spp=4, key=jax.random.key(0)),
+         "render_reference: camera"),
+        (lambda c: dofjax.defocus(rgb, depth, c), "defocus: camera"),
+        (lambda c: dofjax.fit_focus(rgb, rgb, depth, c), "camera"),
+    ]
+    for call, where in calls:
+        with pytest.raises(ValueError, match=rf"^{where}\.focus_distance: must be > 0.*-1\.0"):
+            call(behind)
+        with pytest.raises(ValueError, match=rf"^{where}\.fov: must be in \(0, 180\).*nan"):
+            call(no_fov)
+    for call, where in calls[2:]:  # (the ray casters do not use the aperture)
+        with pytest.raises(ValueError, match=rf"^{where}\.aperture_radius: must be >= 0.*nan"):
+            call(no_aperture)
+    # a batch of cameras (leaves with a leading axis) is checked element by element
+    from dofjax._camera import check_camera
+
+    batch = cam.replace(focus_distance=jnp.asarray([2.0, 0.0, 3.0]))
+    with pytest.raises(ValueError, match=r"^fit: camera\.focus_distance: must be > 0.*got 0\.0"):
+        check_camera(batch, "fit")
+    check_camera(cam.replace(focus_distance=jnp.asarray([2.0, 3.0])), "fit")
+    with pytest.raises(TypeError, match="render: camera must be a dofjax.Camera, got dict"):
+        dofjax.render(scene, {})
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [
