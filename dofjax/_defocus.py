@@ -488,20 +488,19 @@ def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blade
         if mirror is not None:  # the virtual scene: its own single-layer RGB-D
             v_layers = _with_hidden(mirror.radiance, mirror.depth, None, None, window, "sliced",
                                     hidden)
-        cells = [None] if subapertures == 1 else [(k, subapertures) for k in range(subapertures)]
-        images = []
-        for cell in cells:
-            out = _sliced(rgb, depth, camera, reflection, reflection_depth, layers, window,
-                          blades, rotation, ratio, mirror, cell)
-            if mirror is not None:
-                virtual = _sliced(mirror.radiance, mirror.depth, camera, None, None, v_layers,
-                                  window, blades, rotation, ratio, None, cell)
-                out = _confine(out, virtual)
-            images.append(out)
-        if len(images) == 1:
-            return images[0], None
+        # with sub-apertures: every sector's image (K, H, W, C) from one pass that builds each
+        # slice once (`_sliced.sliced_defocus(sectors=K)`)
+        sectors = None if subapertures == 1 else subapertures
+        out = _sliced(rgb, depth, camera, reflection, reflection_depth, layers, window,
+                      blades, rotation, ratio, mirror, sectors)
+        if mirror is not None:
+            virtual = _sliced(mirror.radiance, mirror.depth, camera, None, None, v_layers,
+                              window, blades, rotation, ratio, None, sectors)
+            out = _confine(out, virtual)
+        if sectors is None:
+            return out, None
         weights = cell_weights(subapertures, blades, rotation, ratio)
-        return sum(w * image for w, image in zip(weights, images)), None
+        return sum(w * out[k] for k, w in enumerate(weights)), None
     return _pyramid(rgb, depth, camera, reflection, reflection_depth, layers, window, blades,
                     rotation, ratio, hidden, mirror)
 
@@ -525,10 +524,11 @@ _run_pooled = partial(jax.jit, static_argnames=(
 
 
 def _sliced(rgb, depth, camera, reflection, reflection_depth, layers, window, blades, rotation,
-            ratio, mirror, cell=None):
-    """The sliced method's image (with a footprint channel when `mirror` is given; through the
-    sub-aperture `cell` only, when given), its (focus, aperture) derivatives by its written-out
-    Jacobian and adjoint. `layers` include the hidden-background estimate if any (`_run`)."""
+            ratio, mirror, sectors=None):
+    """The sliced method's image (with a footprint channel when `mirror` is given; with
+    `sectors` = K, the K sub-aperture images stacked, (K, H, W, C)), its (focus, aperture)
+    derivatives by its written-out Jacobian and adjoint. `layers` include the
+    hidden-background estimate if any (`_run`)."""
     def at(fn):
         """fn (`sliced_defocus` or `sliced_defocus_jacobian`) at focus, aperture = y."""
         def call(y, a):
@@ -536,7 +536,7 @@ def _sliced(rgb, depth, camera, reflection, reflection_depth, layers, window, bl
             cam = camera.replace(focus_distance=y[0], aperture_radius=y[1])
             return fn(rgb, depth, cam, window=window, blades=blades, rotation=rotation,
                       ratio=ratio, reflection=reflection, reflection_depth=reflection_depth,
-                      layers=layers, mirror=mirror, cell=cell)
+                      layers=layers, mirror=mirror, sectors=sectors)
         return call
 
     y = jnp.stack(jnp.broadcast_arrays(jnp.asarray(camera.focus_distance),
@@ -558,7 +558,7 @@ def _sliced(rgb, depth, camera, reflection, reflection_depth, layers, window, bl
     # (inside a forward-only Jacobian, such as the fitter's, no residuals are needed)
     adjoint = None if tracing_forward_only() else functools.partial(
         sliced_defocus_adjoint, window=window, blades=blades, rotation=rotation, ratio=ratio,
-        cell=cell)
+        sectors=sectors)
     out = dense_jacobian(at(sliced_defocus), y,
                          (rgb, depth, rest, reflection, reflection_depth, layers, mirror),
                          at(functools.partial(sliced_defocus_jacobian,

@@ -45,6 +45,10 @@
 5. With `cell` = (k, K) every level's kernel is restricted to sector k of K of the aperture
    (`_kernels.cell_kernel`, normalised on its own): the image a part of the lens sees, one term
    of `dofjax.defocus(..., subapertures=K)`, which averages the K images by the sectors' areas.
+   `sectors=K` gives all K images from one pass: each slice (the same for every sector) is
+   built once, then blurred by each sector's kernel and composited into that sector's state
+   (the sectors' kernels are zero-padded to a common size per level, `_sector_plans`, so they
+   share runs and borders; `cell=(k, K)` uses the same padded kernels).
 
 Kernels depend only on static choices (window, shape, cell), so derivatives w.r.t. focus and
 aperture flow only through the slice weights. `sliced_defocus(...)` is pure and jittable (the
@@ -416,10 +420,10 @@ def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_de
 
 
 @functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio",
-                                             "min_radius", "cell"))
+                                             "min_radius", "cell", "sectors"))
 def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rotation=0.0,
                    ratio=1.0, reflection=None, reflection_depth=None, layers=None,
-                   min_radius: float = MIN_LOW_RADIUS, mirror=None, cell=None):
+                   min_radius: float = MIN_LOW_RADIUS, mirror=None, cell=None, sectors=None):
     """Defocus by depth slices, each blurred by shifted sums at its own resolution (pure,
     jittable; `window` px and `min_radius` are static).
 
@@ -432,22 +436,40 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     out: the caller confines the separately defocused virtual scene by it).
     `cell`: (k, K): the image through sector k of K of the aperture only (static; None: all of
     it), one term of `dofjax.defocus(..., subapertures=K)`.
+    `sectors`: K (static): the images through each of the K sectors, (K, H, W, C), from one pass
+    that builds every slice once (what `cell=(k, K)` gives for each k, in ~half the time of K
+    such calls at 512 x 512: benchmarks/README.md).
     """
     levels = _levels(float(window))
-    lay = _layout(float(window), blades, float(rotation), float(ratio), float(min_radius),
-                  depth.shape[-2], depth.shape[-1], cell)
+    lay = _lay(window, blades, rotation, ratio, min_radius, depth, cell, sectors)
     colour, q, alpha, refl, q_r, _, cover = _source_fields(
-        rgb, depth, layers, camera, levels, reflection, reflection_depth, lay, mirror)
+        rgb, depth, layers, camera, levels, reflection, reflection_depth, _first(lay), mirror)
     out, _, _ = _composite(colour, q, alpha, refl, q_r, None, lay, cover=cover)
     return out
 
 
+def _lay(window, blades, rotation, ratio, min_radius, depth, cell, sectors):
+    """The layout of a pass: the whole aperture, one sector (`cell`) or all K (`sectors`)."""
+    args = (float(window), blades, float(rotation), float(ratio), float(min_radius),
+            depth.shape[-2], depth.shape[-1])
+    if sectors is not None:
+        if cell is not None:
+            raise ValueError("sliced_defocus: give cell or sectors, not both")
+        return _sector_layouts(*args, sectors)
+    return _layout(*args, cell)
+
+
+def _first(lay) -> _Layout:
+    """The geometry of a layout or of a tuple of sector layouts (they share it)."""
+    return lay if isinstance(lay, _Layout) else lay[0]
+
+
 @functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio",
-                                             "min_radius", "residuals", "cell"))
+                                             "min_radius", "residuals", "cell", "sectors"))
 def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades=None,
                             rotation=0.0, ratio=1.0, reflection=None, reflection_depth=None,
                             layers=None, min_radius: float = MIN_LOW_RADIUS,
-                            residuals: bool = False, mirror=None, cell=None):
+                            residuals: bool = False, mirror=None, cell=None, sectors=None):
     """`sliced_defocus` and its derivatives w.r.t. focus_distance and aperture_radius:
     (out, (d out / d focus, d out / d aperture)), three (H, W, 3) images from one pass that
     carries both tangents beside the image.
@@ -459,17 +481,17 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     tangents run as separate arrays through the same blurs and compositing (a batched tangent
     axis compiles to slower fusions on the CPU). Only the peeled layers' gates are
     differentiated by `jax.jvp`.
-    Same arguments as `sliced_defocus`.
+    Same arguments as `sliced_defocus` (with `sectors`, the image and both derivatives are
+    (K, H, W, C) and res["composite"] is one dict per sector).
     `residuals`: also return what `sliced_defocus_adjoint` needs ((out, J, res)): the value
     lane's per-slice occluders and blurred colour and coverage. Whatever of (J, res) the caller
     does not use, XLA drops (forward mode keeps J, reverse mode res; tested by timing).
     """
     levels = _levels(float(window))
     dtype = rgb.dtype
-    lay = _layout(float(window), blades, float(rotation), float(ratio), float(min_radius),
-                  depth.shape[-2], depth.shape[-1], cell)
+    lay = _lay(window, blades, rotation, ratio, min_radius, depth, cell, sectors)
     colour, q, alpha, refl, q_r, raw, cover = _source_fields(
-        rgb, depth, layers, camera, levels, reflection, reflection_depth, lay, mirror)
+        rgb, depth, layers, camera, levels, reflection, reflection_depth, _first(lay), mirror)
     directions = _directions(camera.focus_distance, camera.aperture_radius, camera.pixel_scale,
                              dtype)
     d_alpha = [None, None]
@@ -480,29 +502,35 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
                                lay, residuals=residuals, cover=cover)
     if not residuals:
         return out, tuple(jac)
-    crop = lay.crop  # the adjoint's sums run over the image
+    crop = _first(lay).crop  # the adjoint's sums run over the image
     return out, tuple(jac), {"composite": res, "q": crop(q), "q_r": crop(q_r), "raw": crop(raw),
                              "camera": (camera.focus_distance, camera.aperture_radius,
                                         camera.pixel_scale)}
 
 
 @functools.partial(jax.jit, static_argnames=("window", "blades", "rotation", "ratio",
-                                             "min_radius", "cell"))
+                                             "min_radius", "cell", "sectors"))
 def sliced_defocus_adjoint(res, ct, *, window: float, blades=None, rotation=0.0, ratio=1.0,
-                           min_radius: float = MIN_LOW_RADIUS, cell=None):
+                           min_radius: float = MIN_LOW_RADIUS, cell=None, sectors=None):
     """J^T ct, for J the (focus, aperture) Jacobian of `sliced_defocus_jacobian` and ct an
     (H, W, 3) cotangent of its image: the reverse-mode gradient, from the residuals `res` of
     `sliced_defocus_jacobian(..., residuals=True)` (the same static arguments), by one pass of
     `_composite_adjoint` (~1x a forward pass) instead of the two tangent lanes (~2x).
 
     The transpose of exactly the tangents that pass writes out (the same masks and slopes):
-    (2,) array [d/d focus, d/d aperture] of sum(ct * out).
+    (2,) array [d/d focus, d/d aperture] of sum(ct * out). With `sectors`, ct is (K, H, W, C)
+    and each sector's pass is transposed on its own (the slices' construction K times).
     """
     levels = _levels(float(window))
     q, q_r, raw = res["q"], res["q_r"], res["raw"]
-    g_q, g_alpha, g_q_r = _composite_adjoint(
-        res["composite"], ct, window=float(window), blades=blades, rotation=float(rotation),
-        ratio=float(ratio), min_radius=float(min_radius), layered=raw is not None, cell=cell)
+    opts = dict(window=float(window), blades=blades, rotation=float(rotation),
+                ratio=float(ratio), min_radius=float(min_radius), layered=raw is not None)
+    if sectors is None:
+        g_q, g_alpha, g_q_r = _composite_adjoint(res["composite"], ct, cell=cell, **opts)
+    else:
+        parts = [_composite_adjoint(r, ct[k], cell=(k, sectors), **opts)
+                 for k, r in enumerate(res["composite"])]
+        g_q, g_alpha, g_q_r = (None if x[0] is None else sum(x) for x in zip(*parts))
     if raw is not None:
         g_q = g_q + jax.vjp(functools.partial(_gate, raw, levels), q)[1](g_alpha)[0]
     out = []
@@ -605,7 +633,7 @@ class _Layout(NamedTuple):
     def kernel_table(self, i_run: int, reflect: bool = False):
         """The run's distinct shifted-sum kernels (host arrays; point-reflected with `reflect`:
         the blur's transpose) and each level's index into them (the `lax.switch` branch that
-        blurs with that kernel's own non-zero taps): (kernels, which (L,) int32)."""
+        blurs with that kernel's own non-zero taps): (kernels, which (L,) int32 host array)."""
         distinct, which = [], []
         for p in self.runs[i_run]:
             k = self.kernels[p][::-1, ::-1] if reflect else self.kernels[p]
@@ -614,11 +642,28 @@ class _Layout(NamedTuple):
             if i == len(distinct):
                 distinct.append(k)
             which.append(i)
-        return distinct, jnp.asarray(which, jnp.int32)
+        return distinct, np.asarray(which, np.int32)
+
+
+@functools.lru_cache(maxsize=64)
+def _sector_plans(window, blades, rotation, ratio, min_radius, count: int):
+    """`_plan` of every sector (k, count), each level's kernels zero-padded to the largest of
+    the sectors' there: the sectors then share their runs, borders and padded frame (one
+    `_composite` pass blurs each slice with every sector's kernel), and a zero tap costs
+    nothing (`_blur` skips it)."""
+    plans = [_plan(window, blades, rotation, ratio, min_radius, (k, count)) for k in range(count)]
+    levels, factors = plans[0][0], plans[0][1]
+    sizes = [max(plan[2][i].shape[0] for plan in plans) for i in range(len(levels))]
+    return tuple((levels, factors, tuple(np.pad(k, (n - k.shape[0]) // 2)
+                                         for k, n in zip(plan[2], sizes))) for plan in plans)
 
 
 def _layout(window, blades, rotation, ratio, min_radius, height, width, cell=None) -> _Layout:
-    levels, factors, kernels = _plan(window, blades, rotation, ratio, min_radius, cell)
+    if cell is None:
+        levels, factors, kernels = _plan(window, blades, rotation, ratio, min_radius)
+    else:
+        levels, factors, kernels = _sector_plans(window, blades, rotation, ratio, min_radius,
+                                                 cell[1])[cell[0]]
     s_max = max(factors)
     runs = _runs(levels, factors, kernels)
     sizes = [max(kernels[p].shape[0] for p in ps) for ps in runs]
@@ -628,10 +673,25 @@ def _layout(window, blades, rotation, ratio, min_radius, height, width, cell=Non
                    -(-height // s_max) * s_max, -(-width // s_max) * s_max)
 
 
-def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: bool = False,
+def _sector_layouts(window, blades, rotation, ratio, min_radius, height, width,
+                    sectors: int | None):
+    """The `_Layout` of the whole aperture (sectors None), or the tuple of the sectors' (k,
+    sectors) layouts for one `_composite` pass over all of them."""
+    if sectors is None:
+        return _layout(window, blades, rotation, ratio, min_radius, height, width)
+    return tuple(_layout(window, blades, rotation, ratio, min_radius, height, width, (k, sectors))
+                 for k in range(sectors))
+
+
+def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = False,
                cover=None):
     """The slices of the sources (`_source_fields`, in the padded frame of the layout `lay`),
     blurred and composited (module docstring).
+
+    `lay`: one `_Layout`, or a tuple of K (`_sector_layouts`: the sectors of one aperture,
+    alike but for their kernels): then every slice is built once and blurred and composited
+    into K states, and the results come per sector (out (K, H, W, C), each derivative too, res
+    a list of K dicts) instead of K passes that each build every slice again.
 
     `tangents`: None, or one (dq, d alpha or None) per direction, dq a function giving each
     source's (and the mirror's) tangent of q from q: then the directional derivatives of the
@@ -645,9 +705,12 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
     Every quantity is carried as lanes (value, then one tangent per direction): linear steps
     (resampling, blurs) act on each lane alike, products get the product rule.
     """
+    single = isinstance(lay, _Layout)
+    lays = (lay,) if single else tuple(lay)
+    lay = lays[0]
     height, width = lay.height, lay.width
     dtype = colour.dtype
-    factors, kernels, runs = lay.factors, lay.kernels, lay.runs
+    factors, runs = lay.factors, lay.runs
     sizes, borders, hp, wp = lay.sizes, lay.borders, lay.hp, lay.wp
     tangents = tangents or []
     n_lanes = 1 + len(tangents)
@@ -663,36 +726,53 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
     # first nt are seen through what is in front (the unconfined reflection is not)
     nc = 3 + 3 * mirror + masked
     nt = 3 + masked
-    run_ys = []  # per run: the value lane's (hiding, rgb_b, cov_b) of every slice, or None
-    far_res = None
+    run_ys = []  # per run: the value lane's (hiding, rgb_b, cov_b) of every slice per sector
     reached = _reached(q, alpha, q_r, lay, dtype)
 
-    def run(state, i_run):
-        """Composite the levels of run `i_run` (one resolution) front to back onto `state`
-        (one (acc_rgb, acc_cov, hiding, hiding_next) per lane: what hides this slice (the
-        coverage of every slice before the previous one, plus the previous one's occluders)
-        and what will hide the next one (every slice's coverage so far))."""
+    def run(states, i_run):
+        """Composite the levels of run `i_run` (one resolution) front to back onto `states`
+        (per sector, one (acc_rgb, acc_cov, hiding, hiding_next) per lane: what hides this
+        slice (the coverage of every slice before the previous one, plus the previous one's
+        occluders) and what will hide the next one (every slice's coverage so far))."""
         ps, size, border = runs[i_run], sizes[i_run], borders[i_run]
         s = factors[ps[0]]
         h, w = hp // s, wp // s
+
+        def each_sector(blur):
+            """blur(fields, j, ...) -> sector j's blurred fields, composited into its state."""
+            def go(states, fs, *args, **kw):
+                out = [composite(st, blur(fs, j, *args, **kw)) for j, st in enumerate(states)]
+                return tuple(o[0] for o in out), tuple(o[1] for o in out)
+            return go
+
         if size <= SHIFTED_MAX:
-            # one branch per distinct kernel: each level blurs with its own non-zero taps only
-            # (a `lax.switch` on the level's kernel: every tap costs a pass over the slice); the
-            # compositing runs inside each branch, so the blurred fields fuse into it
-            distinct, ks = lay.kernel_table(i_run)
-            branches = [functools.partial(
-                lambda st, fs, k: composite(st, _blur(fs, k, border)), k=k) for k in distinct]
+            # one branch per distinct kernel (per distinct tuple of the sectors' kernels): each
+            # level blurs with its own non-zero taps only (a `lax.switch` on the level's kernel:
+            # every tap costs a pass over the slice); the compositing runs inside each branch,
+            # so the blurred fields fuse into it
+            tables = [(t[0], t[1].tolist()) for t in
+                      (sector.kernel_table(i_run) for sector in lays)]
+            combos = []
+            for p in range(len(ps)):
+                key = tuple(which[p] for _, which in tables)
+                if key not in combos:
+                    combos.append(key)
+            ks = jnp.asarray([combos.index(tuple(which[p] for _, which in tables))
+                              for p in range(len(ps))], jnp.int32)
+            branches = [functools.partial(each_sector(
+                lambda fs, j, key: _blur(fs, tables[j][0][key[j]], border)), key=key)
+                for key in combos]
 
-            def blur_composite(st, fs, which):
+            def blur_composite(sts, fs, which):
                 if len(branches) == 1:
-                    return branches[0](st, fs)
-                return jax.lax.switch(which, branches, st, fs)
+                    return branches[0](sts, fs)
+                return jax.lax.switch(which, branches, sts, fs)
         else:
-            ks, r, grid = _spectra([kernels[p] for p in ps], h, w, dtype)
-            ks = jnp.asarray(ks)
-
-            def blur_composite(st, fs, k):
-                return composite(st, [_blur_fft(f, k, r, grid) for f in fs])
+            spectra = [_spectra([sector.kernels[p] for p in ps], h, w, dtype) for sector in lays]
+            r, grid = spectra[0][1], spectra[0][2]  # (the sectors' kernels are padded alike)
+            ks = tuple(jnp.asarray(sp[0]) for sp in spectra)
+            blur_composite = each_sector(
+                lambda fs, j, k: [_blur_fft(f, k[j], r, grid) for f in fs])
 
         # the sources with this run's border (a static slice of the padded ones)
         def padded(x):
@@ -719,15 +799,16 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
             *x, has = x
             return jax.lax.cond(has, full, empty, state, tuple(x))
 
-        def empty(state, x):
+        def empty(states, x):
             """A slice no source reaches: nothing to add, and it hides nothing; what hid the
             previous slices hides the next one (`composite` with zero fields)."""
-            new = tuple((rgb, cov, hiding_next, hiding_next)
-                        for rgb, cov, _, hiding_next in state)
+            new = tuple(tuple((rgb, cov, hiding_next, hiding_next)
+                              for rgb, cov, _, hiding_next in state) for state in states)
             ys = None
             if residuals:
-                ys = ((state[0][2], jnp.zeros_like(state[0][0][:nt]),
-                       jnp.zeros_like(state[0][1])), jnp.asarray(False))
+                ys = (tuple((state[0][2], jnp.zeros_like(state[0][0][:nt]),
+                             jnp.zeros_like(state[0][1])) for state in states),
+                      jnp.asarray(False))
             return new, ys
 
         def full(state, x):
@@ -775,12 +856,13 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
                 if masked:
                     lanes[-1].append(sum(slopes[0]) * d_q[i](q_p[0]) * cover_p)
             fields = [_downsample(x, s) for parts in lanes for x in parts]
-            state, ys = blur_composite(state, fields, kernel)
+            state, ys_sectors = blur_composite(state, fields, kernel)
+            ys = None
             if residuals:  # does any source (or the mirror) reach this slice?
                 has = jnp.any(sum(fw[k] + bw[k] for k in each) > 0.0)
                 if mirror:
                     has = has | jnp.any(sum(mirror_w) > 0.0)
-                ys = (ys, has)
+                ys = (ys_sectors, has)
             return state, ys
 
         def composite(state, blurred):
@@ -815,9 +897,9 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
             # occluders in front of it and its blurred colour and coverage
             return tuple(out), ((hiding, rgb_b, cov_b) if residuals else None)
 
-        state, ys = jax.lax.scan(body, state, xs)
+        states, ys = jax.lax.scan(body, states, xs)
         run_ys.append(ys)
-        return state
+        return states
 
     def zeros(s):
         z = jnp.zeros((hp // s, wp // s), dtype)
@@ -832,69 +914,84 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay: _Layout, residuals: b
     # Near side and the finest runs: the state (accumulated colour and coverage, occluders) is
     # carried to each finer run by one upsampling of its nc + 3 channels.
     s_cur = factors[runs[0][0]]
-    state = (zeros(s_cur),) * n_lanes
+    states = tuple((zeros(s_cur),) * n_lanes for _ in lays)
     for i_run in range(last_fine + 1):
         s = factors[runs[i_run][0]]
         if s != s_cur:
-            state, s_cur = tuple(upsample(lane, s_cur // s) for lane in state), s
-        state = run(state, i_run)
+            states = tuple(tuple(upsample(lane, s_cur // s) for lane in state)
+                           for state in states)
+            s_cur = s
+        states = run(states, i_run)
 
     # Far side: seen through the finest runs' (sharp) transmittance, applied at full resolution;
     # the far runs occlude each other at their own, coarser resolutions.
+    far_res = [None] * len(lays)
     if last_fine + 1 < len(runs):
-        seen = 1.0 - state[0][2]
-        transmit = jnp.clip(seen, 0.0, 1.0)
-        inside = (seen > 0.0) & (seen < 1.0)
         # the part of the last fine slice that the first far slice sees (not in `transmit`)
         # still hides the far slices behind it
-        fars = tuple((None, None, jnp.zeros_like(lane[2]), lane[3] - lane[2]) for lane in state)
+        fars = tuple(tuple((None, None, jnp.zeros_like(lane[2]), lane[3] - lane[2])
+                           for lane in state) for state in states)
         far = []
         for i_run in range(last_fine + 1, len(runs)):
             s = factors[runs[i_run][0]]
-            fars = tuple(zeros(s)[:2] + tuple(_downsample(x, s // s_cur) for x in lane[2:])
-                         for lane in fars)
+            fars = tuple(tuple(zeros(s)[:2] + tuple(_downsample(x, s // s_cur) for x in lane[2:])
+                               for lane in state) for state in fars)
             fars = run(fars, i_run)
-            far.append((s, [jnp.concatenate([lane[0], lane[1][None]]) for lane in fars]))
+            far.append((s, [[jnp.concatenate([lane[0], lane[1][None]]) for lane in state]
+                            for state in fars]))
             s_cur = s
-        s_back, back = far[-1]
-        for s, a in far[-2::-1]:  # coarsest to finest, then to full resolution
-            back = [x + _upsample(b, s_back // s) for x, b in zip(a, back)]
-            s_back = s
-        back = [_upsample(b, s_back // s_min) for b in back]
-        far_res = (state[0][2], back[0])
-        # the far surfaces (and the footprint) are seen through the fine runs; the unconfined
-        # reflection (channels 3:6) is not
-        d_transmit = [jnp.where(inside, -lane[2], 0.0) for lane in state[1:]]
-        new = []
-        for i, (lane, b) in enumerate(zip(state, back)):
-            if i == 0:
-                seen_rgb, seen_cov = transmit * b[:nt], transmit * b[nc]
-            else:
-                dt = d_transmit[i - 1]
-                seen_rgb = dt * back[0][:nt] + transmit * b[:nt]
-                seen_cov = dt * back[0][nc] + transmit * b[nc]
-            new.append((lane[0] + jnp.concatenate([seen_rgb, b[nt:nc]]), lane[1] + seen_cov))
-        state = new
-    acc_rgb, acc_cov = state[0][0], state[0][1]
-    den = jnp.minimum(acc_cov[:height, :width], 1.0)
-    # the surfaces (and the blurred footprint, channel 3) renormalised where the coverage is
-    # below 1; the unconfined reflection added as it is
-    out = safe_div(acc_rgb[:nt, :height, :width], den)
-    douts = []
-    for d_rgb, d_cov, *_ in state[1:]:
-        d_den = jnp.where(acc_cov[:height, :width] < 1.0, d_cov[:height, :width], 0.0)
-        d_out = safe_div(d_rgb[:nt, :height, :width] - out * d_den, den)
+        new_states = []
+        for j, state in enumerate(states):
+            s_back, back = far[-1][0], far[-1][1][j]
+            for s, a in far[-2::-1]:  # coarsest to finest, then to full resolution
+                back = [x + _upsample(b, s_back // s) for x, b in zip(a[j], back)]
+                s_back = s
+            back = [_upsample(b, s_back // s_min) for b in back]
+            far_res[j] = (state[0][2], back[0])
+            seen = 1.0 - state[0][2]
+            transmit = jnp.clip(seen, 0.0, 1.0)
+            inside = (seen > 0.0) & (seen < 1.0)
+            # the far surfaces (and the footprint) are seen through the fine runs; the
+            # unconfined reflection (channels 3:6) is not
+            d_transmit = [jnp.where(inside, -lane[2], 0.0) for lane in state[1:]]
+            new = []
+            for i, (lane, b) in enumerate(zip(state, back)):
+                if i == 0:
+                    seen_rgb, seen_cov = transmit * b[:nt], transmit * b[nc]
+                else:
+                    dt = d_transmit[i - 1]
+                    seen_rgb = dt * back[0][:nt] + transmit * b[:nt]
+                    seen_cov = dt * back[0][nc] + transmit * b[nc]
+                new.append((lane[0] + jnp.concatenate([seen_rgb, b[nt:nc]]), lane[1] + seen_cov))
+            new_states.append(new)
+        states = new_states
+    outs, douts, res = [], [], []
+    for j, state in enumerate(states):
+        acc_rgb, acc_cov = state[0][0], state[0][1]
+        den = jnp.minimum(acc_cov[:height, :width], 1.0)
+        # the surfaces (and the blurred footprint, channel 3) renormalised where the coverage
+        # is below 1; the unconfined reflection added as it is
+        out = safe_div(acc_rgb[:nt, :height, :width], den)
+        d_outs = []
+        for d_rgb, d_cov, *_ in state[1:]:
+            d_den = jnp.where(acc_cov[:height, :width] < 1.0, d_cov[:height, :width], 0.0)
+            d_out = safe_div(d_rgb[:nt, :height, :width] - out * d_den, den)
+            if mirror:
+                d_out = d_out + d_rgb[3:6, :height, :width]
+            d_outs.append(jnp.moveaxis(d_out, 0, -1))
         if mirror:
-            d_out = d_out + d_rgb[3:6, :height, :width]
-        douts.append(jnp.moveaxis(d_out, 0, -1))
-    if mirror:
-        out = out + acc_rgb[3:6, :height, :width]
-    res = None
-    if residuals:
-        res = {"sources": (colour, q, alpha, refl if mirror else None, q_r if mirror else None,
-                           cover),
-               "ys": run_ys, "far": far_res, "final": (acc_rgb[:nt], acc_cov)}
-    return jnp.moveaxis(out, 0, -1), douts, res
+            out = out + acc_rgb[3:6, :height, :width]
+        outs.append(jnp.moveaxis(out, 0, -1))
+        douts.append(d_outs)
+        if residuals:  # (a run's ys: per slice, each sector's (hiding, rgb_b, cov_b), and has)
+            res.append({"sources": (colour, q, alpha, refl if mirror else None,
+                                    q_r if mirror else None, cover),
+                        "ys": [(ys[0][j], ys[1]) for ys in run_ys], "far": far_res[j],
+                        "final": (acc_rgb[:nt], acc_cov)})
+    if single:
+        return outs[0], douts[0], res[0] if residuals else None
+    return (jnp.stack(outs), [jnp.stack(d) for d in zip(*douts)],
+            res if residuals else None)
 
 
 def _reached(q, alpha, q_r, lay: _Layout, dtype):
