@@ -519,18 +519,14 @@ def sliced_defocus_adjoint(res, ct, *, window: float, blades=None, rotation=0.0,
 
     The transpose of exactly the tangents that pass writes out (the same masks and slopes):
     (2,) array [d/d focus, d/d aperture] of sum(ct * out). With `sectors`, ct is (K, H, W, C)
-    and each sector's pass is transposed on its own (the slices' construction K times).
+    (the sectors' cotangents run through one pass too).
     """
     levels = _levels(float(window))
     q, q_r, raw = res["q"], res["q_r"], res["raw"]
     opts = dict(window=float(window), blades=blades, rotation=float(rotation),
                 ratio=float(ratio), min_radius=float(min_radius), layered=raw is not None)
-    if sectors is None:
-        g_q, g_alpha, g_q_r = _composite_adjoint(res["composite"], ct, cell=cell, **opts)
-    else:
-        parts = [_composite_adjoint(r, ct[k], cell=(k, sectors), **opts)
-                 for k, r in enumerate(res["composite"])]
-        g_q, g_alpha, g_q_r = (None if x[0] is None else sum(x) for x in zip(*parts))
+    g_q, g_alpha, g_q_r = _composite_adjoint(res["composite"], ct, cell=cell, sectors=sectors,
+                                             **opts)
     if raw is not None:
         g_q = g_q + jax.vjp(functools.partial(_gate, raw, levels), q)[1](g_alpha)[0]
     out = []
@@ -1062,7 +1058,7 @@ def _channel_sum(x):
 
 
 def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, layered: bool,
-                       cell=None):
+                       cell=None, sectors=None):
     """The transpose of `_composite`'s tangent lanes: the cotangent `ct` (H, W, 3) of the image
     taken back to the sources' tangents of q (and of coverage, `layered`, and of the mirror's q),
     from the value lane's residuals `res` (`_composite(..., residuals=True)`).
@@ -1075,33 +1071,46 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
     shifted sums with the point-reflected kernel; FFT runs by `jax.linear_transpose`), the box
     averages and upsamplings by theirs. Costs about one forward pass: per slice it reads the
     stored (hiding, blurred colour and coverage) and blurs five cotangent channels.
+    With `sectors` = K (`_composite` over K sector layouts): `res` is the list of the sectors'
+    residuals and ct is (K, H, W, C); the sectors' cotangent states run through one scan, and
+    each slice's cotangent (the sum of the sectors' transposed blurs) goes back to the sources
+    once.
 
     Returns (g_q (S, H, W), g_alpha (S, H, W) or None, g_q_r (H, W) or None).
     """
-    colour, q, alpha, refl, q_r, cover = res["sources"]
+    ress = list(res) if sectors is not None else [res]
+    cts = ct if sectors is not None else ct[None]
+    colour, q, alpha, refl, q_r, cover = ress[0]["sources"]
     mirror, masked = refl is not None, cover is not None
-    height, width = ct.shape[0], ct.shape[1]
+    height, width = cts.shape[1], cts.shape[2]
     dtype = colour.dtype
-    lay = _layout(window, blades, rotation, ratio, min_radius, height, width, cell)
-    factors, kernels, runs = lay.factors, lay.kernels, lay.runs
+    if sectors is None:
+        lays = (_layout(window, blades, rotation, ratio, min_radius, height, width, cell),)
+    else:
+        lays = _sector_layouts(window, blades, rotation, ratio, min_radius, height, width,
+                               sectors)
+    lay = lays[0]
+    factors, runs = lay.factors, lay.runs
     hp, wp = lay.hp, lay.wp
     nc = 3 + 3 * mirror + masked
     nt = 3 + masked  # the channels seen through what is in front (`_composite`)
     each = range(colour.shape[0])
-    ct = jnp.moveaxis(ct, -1, 0).astype(dtype)
-
-    # out = acc_rgb[:nt] / min(acc_cov, 1) (+ the reflection), cropped to the image
-    acc_rgb, acc_cov = res["final"]
-    cov = acc_cov[:height, :width]
-    den = jnp.minimum(cov, 1.0)
-    out = safe_div(acc_rgb[:, :height, :width], den)
 
     def frame(x):  # the image's (..., height, width) in the (..., hp, wp) state frame
         return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((0, hp - height), (0, wp - width)))
 
-    # (with a footprint, ct has a fourth channel: the blurred footprint's)
-    g_rgb = frame(jnp.concatenate([safe_div(ct[:nt], den)] + ([ct] if mirror else [])))
-    g_cov = frame(jnp.where(cov < 1.0, -_channel_sum(safe_div(ct[:nt] * out, den)), 0.0))
+    # out = acc_rgb[:nt] / min(acc_cov, 1) (+ the reflection), cropped to the image
+    g_outs = []
+    for r, c in zip(ress, cts):
+        acc_rgb, acc_cov = r["final"]
+        c = jnp.moveaxis(c, -1, 0).astype(dtype)
+        cov = acc_cov[:height, :width]
+        den = jnp.minimum(cov, 1.0)
+        out = safe_div(acc_rgb[:, :height, :width], den)
+        # (with a footprint, ct has a fourth channel: the blurred footprint's)
+        g_outs.append((frame(jnp.concatenate([safe_div(c[:nt], den)] + ([c] if mirror else []))),
+                       frame(jnp.where(cov < 1.0, -_channel_sum(safe_div(c[:nt] * out, den)),
+                                       0.0))))
 
     # the sources' cotangents, in the image frame (a run's slices reach the padded frame's
     # border too, but no source is there)
@@ -1109,9 +1118,9 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
     g_alpha = jnp.zeros_like(g_q) if layered else None
     g_q_r = jnp.zeros((height, width), dtype) if mirror else None
 
-    def run_back(g_state, i_run):
-        """The slices of run `i_run`, back to front: the state's cotangents at the run's end ->
-        at its start; the sources' cotangents added to g_q, g_alpha, g_q_r."""
+    def run_back(g_states, i_run):
+        """The slices of run `i_run`, back to front: the sectors' state cotangents at the run's
+        end -> at its start; the sources' cotangents added to g_q, g_alpha, g_q_r."""
         nonlocal g_q, g_alpha, g_q_r
         ps, size, border = runs[i_run], lay.sizes[i_run], lay.borders[i_run]
         s = factors[ps[0]]
@@ -1120,42 +1129,58 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         colour_p, q_p, alpha_p, refl_p, q_r_p, cover_p = (
             lay.view(x, i_run) for x in (colour, q, alpha, refl, q_r, cover))
 
-        def no_sources(gs, *_):  # (gs) in the switch, (gs, spectrum) in the FFT cond
+        def no_sources(gss, *_):  # (gss) in the switch, (gss, spectra) in the FFT cond
             # a slice no source reaches: its fields are zero, and so are their cotangents'
             # contributions (the branch index is a runtime value, so the blurs' transposes stay
             # inside `lax.switch` and come out materialised at the coarse resolution; fused into
             # the full-resolution step below, XLA repeated them for every fine pixel)
             return [jnp.zeros(g.shape[:-2] + (g.shape[-2] + 2 * border, g.shape[-1] + 2 * border),
-                              g.dtype) for g in gs]
+                              g.dtype) for g in gss[0]]
+
+        def summed(parts):  # the sectors' transposed blurs of one slice's fields, added
+            return [functools.reduce(jnp.add, fields) for fields in zip(*parts)]
 
         if size <= SHIFTED_MAX:
             # the shifted sums' transpose: the point-reflected kernel over the cotangent
             # zero-padded by its radius plus the run's border (the fields carry that border)
-            distinct, ks = lay.kernel_table(i_run, reflect=True)
+            tables = [(t[0], t[1].tolist()) for t in
+                      (sector.kernel_table(i_run, reflect=True) for sector in lays)]
+            combos = []
+            for p in range(len(ps)):
+                key = tuple(which[p] for _, which in tables)
+                if key not in combos:
+                    combos.append(key)
+            ks = jnp.asarray([combos.index(tuple(which[p] for _, which in tables))
+                              for p in range(len(ps))], jnp.int32)
 
-            def branch(gs, k):
+            def blur_one(gs, k):
                 r = k.shape[0] // 2
                 e = r + border
                 return _blur([jnp.pad(g, ((0, 0),) * (g.ndim - 2) + ((e, e), (e, e)))
                               for g in gs], k, r)
 
-            branches = [functools.partial(branch, k=k) for k in distinct]
+            def branch(gss, key):
+                return summed([blur_one(gs, tables[j][0][key[j]]) for j, gs in enumerate(gss)])
 
-            def blur_t(gs, which, has):
+            branches = [functools.partial(branch, key=key) for key in combos]
+
+            def blur_t(gss, which, has):
                 return jax.lax.switch(jnp.where(has, which, len(branches)),
-                                      branches + [no_sources], gs)
+                                      branches + [no_sources], gss)
         else:
-            ks, r, grid = _spectra([kernels[p] for p in ps], h, w, dtype)
-            ks = jnp.asarray(ks)
+            spectra = [_spectra([sector.kernels[p] for p in ps], h, w, dtype) for sector in lays]
+            r, grid = spectra[0][1], spectra[0][2]
+            ks = tuple(jnp.asarray(sp[0]) for sp in spectra)
 
-            def fft_t(gs, k):
-                return [jax.linear_transpose(lambda f: _blur_fft(f, k, r, grid), g)(g)[0]
-                        for g in gs]
+            def fft_t(gss, k):
+                return summed([[jax.linear_transpose(lambda f: _blur_fft(f, k[j], r, grid), g)(g)[0]
+                                for g in gs] for j, gs in enumerate(gss)])
 
-            def blur_t(gs, k, has):
-                return jax.lax.cond(has, fft_t, no_sources, gs, k)
+            def blur_t(gss, k, has):
+                return jax.lax.cond(has, fft_t, no_sources, gss, k)
 
-        xs = lay.level_table(i_run, dtype) + (ks, res["ys"][i_run])
+        xs = lay.level_table(i_run, dtype) + (
+            ks, tuple(r["ys"][i_run][0] for r in ress), ress[0]["ys"][i_run][1])
         acc = (jnp.zeros_like(q_p), jnp.zeros_like(alpha_p) if layered else None,
                None if q_r_p is None else jnp.zeros_like(q_r_p))
 
@@ -1163,22 +1188,26 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
             """One slice, back to front: the composite step and the blur transposed (the
             state's cotangents after the slice -> before it, and the slice's fields'), then the
             fields' construction from the sources (`slice_parts` of the tangent weights)."""
-            (g_rgb, g_cov, g_hid, g_next), acc = carry
-            _, _, _, kernel, ((hiding, rgb_b, cov_b), has) = x
-            seen = 1.0 - hiding
-            transmit = jnp.clip(seen, 0.0, 1.0)
-            # (rgb_b: with the blurred footprint as a fourth channel, `masked`)
-            g_t = _channel_sum(g_rgb[:nt] * rgb_b) + g_cov * cov_b
-            g_blurred = [transmit * g_rgb[:3], transmit * g_cov + g_next, g_hid]
-            if mirror:
-                g_blurred.append(g_rgb[3:6])
-            if masked:
-                g_blurred.append(transmit * g_rgb[3])
-            g_state = (g_rgb, g_cov, -jnp.where((seen > 0.0) & (seen < 1.0), g_t, 0.0),
-                       g_hid + g_next)
+            g_states, acc = carry
+            _, _, _, kernel, ys, has = x
+            new_states, g_blurred = [], []
+            for (g_rgb, g_cov, g_hid, g_next), (hiding, rgb_b, cov_b) in zip(g_states, ys):
+                seen = 1.0 - hiding
+                transmit = jnp.clip(seen, 0.0, 1.0)
+                # (rgb_b: with the blurred footprint as a fourth channel, `masked`)
+                g_t = _channel_sum(g_rgb[:nt] * rgb_b) + g_cov * cov_b
+                g_b = [transmit * g_rgb[:3], transmit * g_cov + g_next, g_hid]
+                if mirror:
+                    g_b.append(g_rgb[3:6])
+                if masked:
+                    g_b.append(transmit * g_rgb[3])
+                g_blurred.append(g_b)
+                new_states.append((g_rgb, g_cov,
+                                   -jnp.where((seen > 0.0) & (seen < 1.0), g_t, 0.0),
+                                   g_hid + g_next))
             g_f = blur_t(g_blurred, kernel, has)
             acc = jax.lax.cond(has, accumulate, lambda acc, x, g_f: acc, acc, x, g_f)
-            return (g_state, acc), None
+            return (tuple(new_states), acc), None
 
         def accumulate(acc, x, g_f):
             a_q, a_alpha, a_q_r = acc
@@ -1200,8 +1229,8 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
                 a_q = a_q.at[0].add(dq_w[0] * cover_p * g_f[3])
             return a_q, a_alpha, a_q_r
 
-        (g_state, (a_q, a_alpha, a_q_r)), _ = jax.lax.scan(body, (g_state, acc), xs,
-                                                           reverse=True)
+        (g_states, (a_q, a_alpha, a_q_r)), _ = jax.lax.scan(body, (tuple(g_states), acc), xs,
+                                                            reverse=True)
 
         def image(x):  # the image's part of the run's view of the padded frame
             e = lay.border_px - o
@@ -1212,44 +1241,51 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
             g_alpha = g_alpha + image(a_alpha)
         if a_q_r is not None:
             g_q_r = g_q_r + image(a_q_r)
-        return g_state
+        return g_states
 
     s_min = min(factors)
     last_fine = max(i for i, ps in enumerate(runs) if factors[ps[0]] == s_min)
     zero = jnp.zeros((hp, wp), dtype)
-    g_hid, g_next = zero, zero
-    if res["far"] is not None:
-        # acc += concat(transmit * back[:nt], back[nt:nc]), acc_cov += transmit * back[nc],
-        # with transmit = clip(1 - hiding of the fine runs)
-        hid_f, back = res["far"]
-        seen = 1.0 - hid_f
-        transmit = jnp.clip(seen, 0.0, 1.0)
-        g_t = _channel_sum(g_rgb[:nt] * back[:nt]) + g_cov * back[nc]
-        g_hid = -jnp.where((seen > 0.0) & (seen < 1.0), g_t, 0.0)
-        g_b = (jnp.concatenate([transmit * g_rgb[:nt], g_rgb[nt:nc]]), transmit * g_cov)
+    g_hids, g_nexts = [zero] * len(ress), [zero] * len(ress)
+    if ress[0]["far"] is not None:
         far_runs = list(range(last_fine + 1, len(runs)))
         fs = [factors[runs[i][0]] for i in far_runs]
-        # back = far[0] + up(far[1] + up(... far[-1])), upsampled to full resolution
-        g_far = []
-        g_b = tuple(_upsample_transpose(g, fs[0] // s_min) for g in g_b)
-        for j in range(len(far_runs)):
-            g_far.append(g_b)
-            if j + 1 < len(far_runs):
-                g_b = tuple(_upsample_transpose(g, fs[j + 1] // fs[j]) for g in g_b)
+        g_fars = []
+        for j, (r, (g_rgb, g_cov)) in enumerate(zip(ress, g_outs)):
+            # acc += concat(transmit * back[:nt], back[nt:nc]), acc_cov += transmit * back[nc],
+            # with transmit = clip(1 - hiding of the fine runs)
+            hid_f, back = r["far"]
+            seen = 1.0 - hid_f
+            transmit = jnp.clip(seen, 0.0, 1.0)
+            g_t = _channel_sum(g_rgb[:nt] * back[:nt]) + g_cov * back[nc]
+            g_hids[j] = -jnp.where((seen > 0.0) & (seen < 1.0), g_t, 0.0)
+            g_b = (jnp.concatenate([transmit * g_rgb[:nt], g_rgb[nt:nc]]), transmit * g_cov)
+            # back = far[0] + up(far[1] + up(... far[-1])), upsampled to full resolution
+            g_far = []
+            g_b = tuple(_upsample_transpose(g, fs[0] // s_min) for g in g_b)
+            for i in range(len(far_runs)):
+                g_far.append(g_b)
+                if i + 1 < len(far_runs):
+                    g_b = tuple(_upsample_transpose(g, fs[i + 1] // fs[i]) for g in g_b)
+            g_fars.append(g_far)
         # each far run starts from the previous one's occluders (box-averaged to its grid), the
         # first from (0, hiding_next - hiding) of the fine runs
-        g_end = (jnp.zeros_like(g_far[-1][1]),) * 2
-        for j in reversed(range(len(far_runs))):
-            g_state = run_back(g_far[j] + g_end, far_runs[j])
-            r = fs[j] // (fs[j - 1] if j > 0 else s_min)
-            g_end = (_box_transpose(g_state[2], r), _box_transpose(g_state[3], r))
-        g_hid, g_next = g_hid - g_end[1], g_end[1]
+        g_ends = [(jnp.zeros_like(g_far[-1][1]),) * 2 for g_far in g_fars]
+        for i in reversed(range(len(far_runs))):
+            g_states = run_back(tuple(g_far[i] + g_end for g_far, g_end in zip(g_fars, g_ends)),
+                                far_runs[i])
+            r = fs[i] // (fs[i - 1] if i > 0 else s_min)
+            g_ends = [(_box_transpose(g[2], r), _box_transpose(g[3], r)) for g in g_states]
+        g_hids = [g_hid - g_end[1] for g_hid, g_end in zip(g_hids, g_ends)]
+        g_nexts = [g_end[1] for g_end in g_ends]
 
-    g_state = (g_rgb, g_cov, g_hid, g_next)
+    g_states = tuple((g_rgb, g_cov, g_hid, g_next)
+                     for (g_rgb, g_cov), g_hid, g_next in zip(g_outs, g_hids, g_nexts))
     for i_run in reversed(range(last_fine + 1)):
-        g_state = run_back(g_state, i_run)
+        g_states = run_back(g_states, i_run)
         if i_run > 0:
             r = factors[runs[i_run - 1][0]] // factors[runs[i_run][0]]
             if r > 1:  # the state was upsampled into this run: (acc_rgb, acc_cov, hid, next)
-                g_state = tuple(_upsample_transpose(g, r) for g in g_state)
+                g_states = tuple(tuple(_upsample_transpose(g, r) for g in g_state)
+                                 for g_state in g_states)
     return g_q, g_alpha, g_q_r
