@@ -669,6 +669,17 @@ def _layout(window, blades, rotation, ratio, min_radius, height, width, cell=Non
                    -(-height // s_max) * s_max, -(-width // s_max) * s_max)
 
 
+def _sector_kernel_table(lays, i_run: int, reflect: bool = False):
+    """`_Layout.kernel_table` for the sector layouts `lays` together: each sector's distinct
+    kernels, the distinct tuples of the sectors' kernel indices (one `lax.switch` branch
+    each) and each level's index into those tuples ((L,) int32)."""
+    tables = [sector.kernel_table(i_run, reflect) for sector in lays]
+    keys = [tuple(int(which[p]) for _, which in tables) for p in range(len(lays[0].runs[i_run]))]
+    combos = list(dict.fromkeys(keys))
+    return ([t[0] for t in tables], combos,
+            jnp.asarray([combos.index(key) for key in keys], jnp.int32))
+
+
 def _sector_layouts(window, blades, rotation, ratio, min_radius, height, width,
                     sectors: int | None):
     """The `_Layout` of the whole aperture (sectors None), or the tuple of the sectors' (k,
@@ -746,17 +757,9 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
             # level blurs with its own non-zero taps only (a `lax.switch` on the level's kernel:
             # every tap costs a pass over the slice); the compositing runs inside each branch,
             # so the blurred fields fuse into it
-            tables = [(t[0], t[1].tolist()) for t in
-                      (sector.kernel_table(i_run) for sector in lays)]
-            combos = []
-            for p in range(len(ps)):
-                key = tuple(which[p] for _, which in tables)
-                if key not in combos:
-                    combos.append(key)
-            ks = jnp.asarray([combos.index(tuple(which[p] for _, which in tables))
-                              for p in range(len(ps))], jnp.int32)
+            kernels, combos, ks = _sector_kernel_table(lays, i_run)
             branches = [functools.partial(each_sector(
-                lambda fs, j, key: _blur(fs, tables[j][0][key[j]], border)), key=key)
+                lambda fs, j, key: _blur(fs, kernels[j][key[j]], border)), key=key)
                 for key in combos]
 
             def blur_composite(sts, fs, which):
@@ -1143,15 +1146,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         if size <= SHIFTED_MAX:
             # the shifted sums' transpose: the point-reflected kernel over the cotangent
             # zero-padded by its radius plus the run's border (the fields carry that border)
-            tables = [(t[0], t[1].tolist()) for t in
-                      (sector.kernel_table(i_run, reflect=True) for sector in lays)]
-            combos = []
-            for p in range(len(ps)):
-                key = tuple(which[p] for _, which in tables)
-                if key not in combos:
-                    combos.append(key)
-            ks = jnp.asarray([combos.index(tuple(which[p] for _, which in tables))
-                              for p in range(len(ps))], jnp.int32)
+            kernels, combos, ks = _sector_kernel_table(lays, i_run, reflect=True)
 
             def blur_one(gs, k):
                 r = k.shape[0] // 2
@@ -1160,7 +1155,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
                               for g in gs], k, r)
 
             def branch(gss, key):
-                return summed([blur_one(gs, tables[j][0][key[j]]) for j, gs in enumerate(gss)])
+                return summed([blur_one(gs, kernels[j][key[j]]) for j, gs in enumerate(gss)])
 
             branches = [functools.partial(branch, key=key) for key in combos]
 
