@@ -437,7 +437,7 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     `cell`: (k, K): the image through sector k of K of the aperture only (static; None: all of
     it), one term of `dofjax.defocus(..., subapertures=K)`.
     `sectors`: K (static): the images through each of the K sectors, (K, H, W, C), from one pass
-    that builds every slice once (what `cell=(k, K)` gives for each k, in ~half the time of K
+    that builds every slice once (what `cell=(k, K)` gives for each k, in ~2/3 the time of K
     such calls at 512 x 512: benchmarks/README.md).
     """
     levels = _levels(float(window))
