@@ -710,6 +710,37 @@ def test_sectors_in_one_pass_equal_one_pass_per_sector(sectors, kw):
     np.testing.assert_allclose(grad, [float(jnp.sum(j * ct)) for j in jac], rtol=1e-10)
 
 
+def test_sectors_in_one_pass_with_a_mirror():
+    # With a Mirror both passes (surfaces with the footprint channel, the virtual scene) give
+    # their K sector images from one pass each, and each sector's virtual scene is confined by
+    # that sector's footprint before the area-weighted sum: the same as K cell passes
+    import os
+
+    from dofjax._kernels import cell_weights
+
+    path = os.path.join(os.path.dirname(__file__), "..", "examples", "mirror.json")
+    base = dofjax.load_camera(path)
+    cam = Camera(width=32, height=24, fov=base.fov, focus_distance=base.focus_distance,
+                 aperture_radius=base.aperture_radius, eye=base.eye, target=base.target,
+                 up=base.up)
+    sharp = dofjax.render(dofjax.load_scene(path), cam)
+    m = sharp.mirror
+    assert 0.1 < float(jnp.mean(m.coverage)) < 0.9
+    k_sectors = 3
+    want = 0.0
+    for k, w in enumerate(cell_weights(k_sectors, None, 0.0, 1.0)):
+        out = sliced_defocus(sharp.rgb, sharp.depth, cam, window=6, reflection=sharp.reflection,
+                             reflection_depth=sharp.reflection_depth, mirror=m,
+                             cell=(k, k_sectors))
+        virtual = sliced_defocus(m.radiance, m.depth, cam, window=6, cell=(k, k_sectors))
+        want = want + w * (out[..., :3] + out[..., 3:] * virtual)
+    got = dofjax.defocus(sharp, cam, window=6, subapertures=k_sectors)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
+    f = dofjax.defocus_fn(sharp, cam, window=6, subapertures=k_sectors)
+    assert_grads_match_fd(lambda p: jnp.sum(f(p[0], p[1]) ** 2),
+                          jnp.array([float(cam.focus_distance), float(cam.aperture_radius)]))
+
+
 def test_subaperture_gradients_match_central_differences():
     cam = camera(aperture_radius=0.05)
     rng = np.random.default_rng(4)
