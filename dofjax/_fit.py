@@ -1327,8 +1327,7 @@ def _unpack(name: str, rgb, depth, camera, model):
     if model is not None:
         raise ValueError(f"{name}: a custom model takes (rgb, depth, camera) only, so the RGBD's "
                          "reflection / peeled layers cannot reach it; pass rgbd.rgb, rgbd.depth")
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a dofjax.Camera, got {type(camera).__name__}")
+    check_camera(camera)  # (before camera.scaled below; _validate checks it again, cheaply)
     from ._defocus import _validate as _validate_rgbd
 
     dtype = jnp.result_type(float)

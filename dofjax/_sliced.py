@@ -523,10 +523,10 @@ def sliced_defocus_adjoint(res, ct, *, window: float, blades=None, rotation=0.0,
     """
     levels = _levels(float(window))
     q, q_r, raw = res["q"], res["q_r"], res["raw"]
-    opts = dict(window=float(window), blades=blades, rotation=float(rotation),
-                ratio=float(ratio), min_radius=float(min_radius), layered=raw is not None)
-    g_q, g_alpha, g_q_r = _composite_adjoint(res["composite"], ct, cell=cell, sectors=sectors,
-                                             **opts)
+    g_q, g_alpha, g_q_r = _composite_adjoint(
+        res["composite"], ct, window=float(window), blades=blades, rotation=float(rotation),
+        ratio=float(ratio), min_radius=float(min_radius), layered=raw is not None, cell=cell,
+        sectors=sectors)
     if raw is not None:
         g_q = g_q + jax.vjp(functools.partial(_gate, raw, levels), q)[1](g_alpha)[0]
     out = []
@@ -681,11 +681,8 @@ def _sector_kernel_table(lays, i_run: int, reflect: bool = False):
 
 
 def _sector_layouts(window, blades, rotation, ratio, min_radius, height, width,
-                    sectors: int | None):
-    """The `_Layout` of the whole aperture (sectors None), or the tuple of the sectors' (k,
-    sectors) layouts for one `_composite` pass over all of them."""
-    if sectors is None:
-        return _layout(window, blades, rotation, ratio, min_radius, height, width)
+                    sectors: int) -> tuple[_Layout, ...]:
+    """The sectors' (k, sectors) layouts, for one `_composite` pass over all of them."""
     return tuple(_layout(window, blades, rotation, ratio, min_radius, height, width, (k, sectors))
                  for k in range(sectors))
 
