@@ -87,10 +87,18 @@ from ._rgbd import Layers
 # 2 rather than 3: the 512 x 512 forward pass is 1.55x faster (9 -> 7 full-resolution slices) and
 # RMSE against the lens reference (quads, 128 px, max |c| 12, 3 layers) moves 0.0131 -> 0.0133.
 MIN_LOW_RADIUS = 2.0
-# Kernels of at most SHIFTED_MAX x SHIFTED_MAX taps are applied by shifted sums (one fused pass
-# per kernel size), larger ones by FFT products: at 512 x 512 on the five blurred channels a
-# 9 x 9 kernel costs 7 ms by shifted sums, an FFT pair 17 ms whatever the kernel.
-SHIFTED_MAX = 9
+# Kernels of at most SHIFTED_TAPS non-zero taps are applied by shifted sums (one fused pass per
+# kernel size; a zero tap costs nothing), larger ones by FFT products: at 512 x 512 on the five
+# blurred channels a 9 x 9 disc costs 7 ms by shifted sums, an FFT pair 17 ms whatever the
+# kernel. 81: every disc kernel up to 9 x 9 (|m| <= 4), none larger; a sector's kernel has
+# about 1/K of its disc's taps, so a quarter of a 13 x 13 disc is summed (`CELL_RADIUS_FACTOR`).
+SHIFTED_TAPS = 81
+# A sub-aperture's (sector's) level goes to reduced resolution at CELL_RADIUS_FACTOR times the
+# whole aperture's `min_radius`: a sector is narrower than its disc, and at 1/s of the
+# resolution its wedge shape (its parallax: the centroid off the aperture's centre) is lost
+# sooner. With 4 sectors, quads 128 px, max |c| 12, 3 layers: RMSE 0.0086 -> 0.0077 for 1.2x the
+# 512 x 512 forward pass (8 sectors: 0.0080 -> 0.0070; benchmarks/README.md, session 32).
+CELL_RADIUS_FACTOR = 2.0
 
 
 def _levels(window: float) -> np.ndarray:
@@ -163,6 +171,8 @@ def _plan(window, blades, rotation, ratio, min_radius=MIN_LOW_RADIUS, cell=None)
     resampling adds, equals the full-resolution kernel's, so the slice keeps its blur's size.
     """
     levels = _levels(window)
+    if cell is not None:
+        min_radius = CELL_RADIUS_FACTOR * min_radius
     factors = [_factor(m, min_radius) for m in levels]
     distinct = sorted(set(factors))
     kernels = []
@@ -185,11 +195,11 @@ def _plan(window, blades, rotation, ratio, min_radius=MIN_LOW_RADIUS, cell=None)
     return levels, tuple(factors), tuple(kernels)
 
 
-def _runs(levels, factors, kernels):
-    """Consecutive levels sharing a resolution and a blur method (shifted sums for kernels of at
-    most SHIFTED_MAX x SHIFTED_MAX, FFT products above): each run becomes one `lax.scan`."""
+def _runs(levels, factors, shifted):
+    """Consecutive levels sharing a resolution and a blur method (`shifted[p]`: shifted sums,
+    else FFT products): each run becomes one `lax.scan`."""
     def key(p):
-        return factors[p], kernels[p].shape[0] <= SHIFTED_MAX
+        return factors[p], shifted[p]
     return [list(ps) for _, ps in itertools.groupby(range(len(levels)), key=key)]
 
 
@@ -562,16 +572,17 @@ def _gate(raw, levels, q):
 
 class _Layout(NamedTuple):
     """The static layout of a `_composite` pass: levels, their resolution divisors and kernels,
-    the runs (one `lax.scan` each), each run's kernel size and blur border (coarse px; FFT runs
-    pad their own grid), the sources' zero border at full resolution that covers every run's
-    (each slice is built padded, so no blur pads its input; a per-run pad of the sources cost
-    ~3 ms a run in forward mode), and the image padded to a multiple of the coarsest divisor."""
+    the runs (one `lax.scan` each), each run's blur method and border (coarse px;
+    FFT runs pad their own grid), the sources' zero border at full resolution that covers every
+    run's (each slice is built padded, so no blur pads its input; a per-run pad of the sources
+    cost ~3 ms a run in forward mode), and the image padded to a multiple of the coarsest
+    divisor."""
 
     levels: np.ndarray
     factors: tuple[int, ...]
     kernels: tuple[np.ndarray, ...]
     runs: list[list[int]]
-    sizes: list[int]
+    shifted: list[bool]  # per run: blurred by shifted sums (else by FFT products)
     borders: list[int]
     border_px: int
     height: int
@@ -657,15 +668,20 @@ def _sector_plans(window, blades, rotation, ratio, min_radius, count: int):
 def _layout(window, blades, rotation, ratio, min_radius, height, width, cell=None) -> _Layout:
     if cell is None:
         levels, factors, kernels = _plan(window, blades, rotation, ratio, min_radius)
-    else:
-        levels, factors, kernels = _sector_plans(window, blades, rotation, ratio, min_radius,
-                                                 cell[1])[cell[0]]
+        every = (kernels,)
+    else:  # (the sectors share their runs: the blur method follows the largest sector kernel)
+        plans = _sector_plans(window, blades, rotation, ratio, min_radius, cell[1])
+        levels, factors, kernels = plans[cell[0]]
+        every = tuple(plan[2] for plan in plans)
+    shifted = [max(np.count_nonzero(ks[p]) for ks in every) <= SHIFTED_TAPS
+               for p in range(len(levels))]
     s_max = max(factors)
-    runs = _runs(levels, factors, kernels)
+    runs = _runs(levels, factors, shifted)
     sizes = [max(kernels[p].shape[0] for p in ps) for ps in runs]
-    borders = [k // 2 if k <= SHIFTED_MAX else 0 for k in sizes]
+    by_shifts = [shifted[ps[0]] for ps in runs]
+    borders = [k // 2 if sh else 0 for k, sh in zip(sizes, by_shifts)]
     border_px = max(factors[ps[0]] * b for ps, b in zip(runs, borders))
-    return _Layout(levels, factors, kernels, runs, sizes, borders, border_px, height, width,
+    return _Layout(levels, factors, kernels, runs, by_shifts, borders, border_px, height, width,
                    -(-height // s_max) * s_max, -(-width // s_max) * s_max)
 
 
@@ -715,7 +731,7 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
     height, width = lay.height, lay.width
     dtype = colour.dtype
     factors, runs = lay.factors, lay.runs
-    sizes, borders, hp, wp = lay.sizes, lay.borders, lay.hp, lay.wp
+    borders, hp, wp = lay.borders, lay.hp, lay.wp
     tangents = tangents or []
     n_lanes = 1 + len(tangents)
     # the mirror's reflected radiance (`refl`): blurred at its virtual depth and added on top,
@@ -738,7 +754,7 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
         (per sector, one (acc_rgb, acc_cov, hiding, hiding_next) per lane: what hides this
         slice (the coverage of every slice before the previous one, plus the previous one's
         occluders) and what will hide the next one (every slice's coverage so far))."""
-        ps, size, border = runs[i_run], sizes[i_run], borders[i_run]
+        ps, border, by_shifts = runs[i_run], borders[i_run], lay.shifted[i_run]
         s = factors[ps[0]]
         h, w = hp // s, wp // s
 
@@ -749,7 +765,7 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
                 return tuple(o[0] for o in out), tuple(o[1] for o in out)
             return go
 
-        if size <= SHIFTED_MAX:
+        if by_shifts:
             # one branch per distinct kernel (per distinct tuple of the sectors' kernels): each
             # level blurs with its own non-zero taps only (a `lax.switch` on the level's kernel:
             # every tap costs a pass over the slice); the compositing runs inside each branch,
@@ -1122,7 +1138,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         """The slices of run `i_run`, back to front: the sectors' state cotangents at the run's
         end -> at its start; the sources' cotangents added to g_q, g_alpha, g_q_r."""
         nonlocal g_q, g_alpha, g_q_r
-        ps, size, border = runs[i_run], lay.sizes[i_run], lay.borders[i_run]
+        ps, border, by_shifts = runs[i_run], lay.borders[i_run], lay.shifted[i_run]
         s = factors[ps[0]]
         h, w = hp // s, wp // s
         o = lay.run_view(i_run)
@@ -1140,7 +1156,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         def summed(parts):  # the sectors' transposed blurs of one slice's fields, added
             return [functools.reduce(jnp.add, fields) for fields in zip(*parts)]
 
-        if size <= SHIFTED_MAX:
+        if by_shifts:
             # the shifted sums' transpose: the point-reflected kernel over the cotangent
             # zero-padded by its radius plus the run's border (the fields carry that border)
             kernels, combos, ks = _sector_kernel_table(lays, i_run, reflect=True)

@@ -9,6 +9,7 @@ import scipy.ndimage
 import scipy.signal
 
 import dofjax
+import dofjax._sliced as sliced_mod
 from dofjax import Camera
 from dofjax._kernels import R0, soft_kernel
 from dofjax._sliced import sliced_defocus, sliced_defocus_adjoint, sliced_defocus_jacobian
@@ -578,8 +579,6 @@ def test_skipping_unreached_slices_changes_nothing(extras, monkeypatch):
     # sources behind the focal plane only, in a narrow band of depths, under a 12 px window:
     # most of its slices are reached by no source and skipped (`_reached`); the image, the
     # written-out Jacobian and the adjoint must equal those with every slice composited
-    import dofjax._sliced as sliced_mod
-
     n = 40
     cam = camera(width=n, height=n, aperture_radius=0.3)
     rgb, depth, kw = _random_sources(n, extras, cam, 15)
@@ -626,17 +625,22 @@ def test_skipping_unreached_slices_changes_nothing(extras, monkeypatch):
 @pytest.mark.parametrize("c", [-2.0, 3.0, -6.0, 8.0])
 def test_subapertures_of_one_plane_add_up_to_the_whole_aperture(c):
     # nothing is occluded on one plane, so the sectors' images (a disc's four quadrants: equal
-    # areas, and at every level the same coarse radius) sum to the whole aperture's image, at
-    # full and at reduced resolution
+    # areas, and at every level the same coarse radius) sum to the whole aperture's image at
+    # the sectors' resolutions (a sector goes to reduced resolution at CELL_RADIUS_FACTOR
+    # times the whole aperture's min_radius), at full and at reduced resolution (|c| 8)
     n = 48
     cam = camera(width=n, height=n)
     rng = np.random.default_rng(11)
     rgb = rng.random((n, n, 3))
     depth = np.full((n, n), depth_for_coc(c, cam))
-    whole = np.asarray(dofjax.defocus(rgb, depth, cam, window=8))
+    min_radius = sliced_mod.CELL_RADIUS_FACTOR * sliced_mod.MIN_LOW_RADIUS
+    whole = np.asarray(sliced_defocus(rgb, depth, cam, window=8, min_radius=min_radius))
     parts = np.asarray(dofjax.defocus(rgb, depth, cam, window=8, subapertures=4))
     m = 14
     np.testing.assert_allclose(parts[m:-m, m:-m], whole[m:-m, m:-m], atol=1e-10)
+    # the whole aperture's own pass blurs |c| 4 ... 6 at half resolution: close, not equal
+    plain = np.asarray(dofjax.defocus(rgb, depth, cam, window=8))
+    assert np.abs(plain - whole)[m:-m, m:-m].max() < 0.05
     # one sector alone is not the whole (its spread is off-centre)
     quarter = np.asarray(sliced_defocus(rgb, depth, cam, window=8, cell=(0, 4)))
     assert np.abs(quarter - whole)[m:-m, m:-m].max() > 1e-2
