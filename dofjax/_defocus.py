@@ -95,8 +95,9 @@ from ._rgbd import RGBD, Layers, Mirror, grow_by_mirror_reach
 from ._sliced import sliced_defocus, sliced_defocus_adjoint, sliced_defocus_jacobian
 
 METHODS = ("pyramid", "sliced", "lens")
-# Most sub-apertures `defocus(..., subapertures=K)` takes: each is a whole sliced pass (and its
-# compiled copy); on the lens-reference scenes the error stops falling at 4-8.
+# Most sub-apertures `defocus(..., subapertures=K)` takes: each adds a blur and a compositing
+# step per slice (and their compiled code); on the lens-reference scenes the error stops
+# falling at 4-8.
 MAX_SUBAPERTURES = 16
 
 SKIP_COC = 0.25  # px: below this everywhere, blurring changes nothing visible
@@ -797,11 +798,12 @@ def defocus(
             foreground leaves visible by the average of what lies behind it; a lens averages
             their product per ray. Per sector the two vary less, so the error behind blurred
             edges falls: against the lens-sampling reference (128 px, max |c| 12, 3 peeled
-            layers, guard band) RMSE on quads 0.0110 -> 0.0086 with 4, 0.0080 with 8 (the lens
-            method 0.0055), on spheres 0.0225 -> 0.0172, boxes 0.0141 -> 0.0120
-            (benchmarks/README.md). Costs about that many sliced passes and compiled copies
-            (4: 4.2-5.2x the time at 512x512); derivatives written out as for 1. Default 1
-            (the whole aperture at once).
+            layers, guard band) RMSE on quads 0.0110 -> 0.0077 with 4, 0.0070 with 8 (the lens
+            method 0.0055), on spheres 0.0225 -> 0.0154, boxes 0.0141 -> 0.0110
+            (benchmarks/README.md). One pass builds each slice once and blurs and composites
+            it per sector, a sector's levels at full resolution up to twice the CoC of the
+            whole aperture's: 4 sectors take ~3x the time at 512x512, 8 ~6x; derivatives
+            written out as for 1. Default 1 (the whole aperture at once).
 
     Returns:
         (H, W, 3) defocused linear colour (and the info when asked).

@@ -48,7 +48,12 @@
    `sectors=K` gives all K images from one pass: each slice (the same for every sector) is
    built once, then blurred by each sector's kernel and composited into that sector's state
    (the sectors' kernels are zero-padded to a common size per level, `_sector_plans`, so they
-   share runs and borders; `cell=(k, K)` uses the same padded kernels).
+   share runs and borders; `cell=(k, K)` uses the same padded kernels). A sector is narrower
+   than its disc, so its levels go to reduced resolution at `CELL_RADIUS_FACTOR` times the
+   `min_radius` (at 1/s of the resolution the box average and the upsampling blur a wedge
+   towards a disc, and the coarse kernel, sized for the second moment, shrinks towards the
+   aperture's centre: a quarter disc kept 75-92 % of its centroid's offset, i.e. of the
+   parallax that part of the lens sees).
 
 Kernels depend only on static choices (window, shape, cell), so derivatives w.r.t. focus and
 aperture flow only through the slice weights. `sliced_defocus(...)` is pure and jittable (the
