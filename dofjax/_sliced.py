@@ -101,7 +101,7 @@ SHIFTED_TAPS = 81
 # A sub-aperture's (sector's) level goes to reduced resolution at CELL_RADIUS_FACTOR times the
 # whole aperture's `min_radius`: a sector is narrower than its disc, and at 1/s of the
 # resolution its wedge shape (its parallax: the centroid off the aperture's centre) is lost
-# sooner. With 4 sectors, quads 128 px, max |c| 12, 3 layers: RMSE 0.0086 -> 0.0077 for 1.2x the
+# sooner. With 4 sectors, quads 128 px, max |c| 12, 3 layers: RMSE 0.0086 -> 0.0077 for ~1.3x the
 # 512 x 512 forward pass (8 sectors: 0.0080 -> 0.0070; benchmarks/README.md, session 32).
 CELL_RADIUS_FACTOR = 2.0
 
@@ -445,7 +445,8 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     Arguments as `dofjax.defocus`; no input validation here (the public wrapper does it).
     |c| beyond the window is clamped to it. `min_radius`: the smallest
     coarse-grid kernel radius (px) a level is blurred with (`MIN_LOW_RADIUS`; larger is slower
-    and closer to the exact full-resolution disc, inf blurs every level at full resolution).
+    and closer to the exact full-resolution disc, inf blurs every level at full resolution; a
+    sector's levels, with `cell` or `sectors`, use `CELL_RADIUS_FACTOR` times it).
     `mirror`: a `Mirror`: the image then has a fourth channel, the mirrors' footprint scattered
     at the visible surface's depth and occluded like its colour (the reflection itself is left
     out: the caller confines the separately defocused virtual scene by it).

@@ -11,7 +11,7 @@ import scipy.signal
 import dofjax
 import dofjax._sliced as sliced_mod
 from dofjax import Camera
-from dofjax._kernels import R0, soft_kernel
+from dofjax._kernels import R0, cell_kernel, soft_kernel
 from dofjax._sliced import sliced_defocus, sliced_defocus_adjoint, sliced_defocus_jacobian
 
 N = 32
@@ -650,6 +650,32 @@ def test_subapertures_of_one_plane_add_up_to_the_whole_aperture(c):
     out = np.asarray(dofjax.defocus(spot, depth, cam, window=8, shape="polygon", blades=5,
                                     rotation=0.3, subapertures=3))
     np.testing.assert_allclose(out.sum(axis=(0, 1)), 1.0, rtol=1e-10)
+
+
+@pytest.mark.parametrize("count, blades", [(4, None), (8, None), (4, 5)])
+def test_sector_levels_keep_their_parallax_at_reduced_resolution(count, blades):
+    # A sector's kernel is off the aperture's centre: its centroid is the parallax that part of
+    # the lens sees. A level blurred at 1/s of the resolution (box average, coarse kernel sized
+    # for the second moment, bilinear upsampling) keeps that centroid only if its coarse wedge
+    # is wide enough: a sector's levels go to reduced resolution at CELL_RADIUS_FACTOR times
+    # the whole aperture's min_radius (with the whole aperture's rule a quarter disc kept 75 %
+    # of it at |c| 8)
+    def centroid(k):
+        h = k.shape[0] // 2
+        off = np.arange(-h, h + 1.0)
+        return np.array([(k.sum(axis=0) * off).sum(), (k.sum(axis=1) * off).sum()])
+
+    worst = 1.0
+    for cell in range(count):
+        levels, factors, kernels = sliced_mod._sector_plans(32.0, blades, 0.3, 1.0,
+                                                            sliced_mod.MIN_LOW_RADIUS, count)[cell]
+        for m, s, k in zip(levels, factors, kernels):
+            if s > 1:
+                full = cell_kernel(float(np.hypot(m, R0)), blades, 0.3, 1.0, (cell, count),
+                                   flip=bool(m > 0))
+                want = centroid(full)
+                worst = min(worst, float(centroid(k) * s @ want / (want @ want)))
+    assert 0.9 <= worst <= 1.05
 
 
 def test_subapertures_bring_a_blurred_edge_closer_to_per_ray_occlusion():
