@@ -55,11 +55,11 @@ _RULES = {
 }
 
 
-def _check_leaves(camera, names, prefix: str) -> None:
-    """ValueError `{prefix}{name}: {rule}, got {value}` for the first of the leaves `names` of
-    `camera` that is concrete (not traced) and breaks its rule: NaN and inf included (a batch
-    of cameras, leaves with a leading axis, is checked element by element)."""
-    for name in names:
+def _check_leaves(camera, prefix: str) -> None:
+    """ValueError `{prefix}{name}: {rule}, got {value}` for the first array leaf of `camera`
+    that is concrete (not traced) and breaks its rule: NaN and inf included (a batch of
+    cameras, leaves with a leading axis, is checked element by element)."""
+    for name in _LEAVES:
         value = getattr(camera, name)
         if name in _RULES:
             ok, why = _RULES[name]
@@ -70,8 +70,7 @@ def _check_leaves(camera, names, prefix: str) -> None:
                     raise ValueError(f"{prefix}{name}: {why}, got {v[bad].flat[0].item()!r}")
         elif _is_concrete(value) and not bool(jnp.all(jnp.isfinite(value))):
             raise ValueError(f"{prefix}{name}: must be finite, got {value.tolist()!r}")
-    if any(n in names for n in ("eye", "target", "up")):
-        _check_pose(camera, prefix)
+    _check_pose(camera, prefix)
 
 
 def _check_pose(camera, prefix: str) -> None:
@@ -97,7 +96,7 @@ def check_camera(camera, where: str | None = None) -> None:
     prefix = f"{where}: " if where else ""
     if not isinstance(camera, Camera):
         raise TypeError(f"{prefix}camera must be a dofjax.Camera, got {type(camera).__name__}")
-    _check_leaves(camera, _LEAVES, f"{prefix}camera.")
+    _check_leaves(camera, f"{prefix}camera.")
 
 
 class Camera(eqx.Module):
@@ -128,7 +127,7 @@ class Camera(eqx.Module):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | jnp.integer) or value < 1:
                 raise ValueError(f"Camera.{name}: must be an integer >= 1, got {value!r}")
-        _check_leaves(self, _LEAVES, "Camera.")
+        _check_leaves(self, "Camera.")
 
     @classmethod
     def from_photographic(
