@@ -68,21 +68,26 @@ def _check_leaves(camera, prefix: str) -> None:
                 bad = ~(np.isfinite(v) & ok(v))
                 if np.any(bad):
                     raise ValueError(f"{prefix}{name}: {why}, got {v[bad].flat[0].item()!r}")
-        elif _is_concrete(value) and not bool(jnp.all(jnp.isfinite(value))):
-            raise ValueError(f"{prefix}{name}: must be finite, got {value.tolist()!r}")
+        elif _is_concrete(value):
+            v = np.asarray(value, dtype=np.float64)
+            if not np.all(np.isfinite(v)):
+                raise ValueError(f"{prefix}{name}: must be finite, got {v.tolist()!r}")
     _check_pose(camera, prefix)
 
 
 def _check_pose(camera, prefix: str) -> None:
-    eye, target, up = camera.eye, camera.target, camera.up
-    if not (_is_concrete(eye) and _is_concrete(target) and _is_concrete(up)):
+    # On the host in NumPy, like the leaves' rules: inside `jax.jit` a jnp operation on a
+    # concrete (closed-over) leaf is staged out, and its truth value is then a tracer.
+    if not all(_is_concrete(x) for x in (camera.eye, camera.target, camera.up)):
         return
+    eye, target, up = (np.asarray(x, dtype=np.float64) for x in (camera.eye, camera.target,
+                                                                  camera.up))
     forward = target - eye
-    if float(jnp.linalg.norm(forward)) == 0.0:
+    length = np.linalg.norm(forward, axis=-1)
+    if np.any(length == 0.0):
         raise ValueError(f"{prefix}target: must differ from eye")
-    if float(jnp.linalg.norm(jnp.cross(forward, up))) <= 1e-9 * float(
-        jnp.linalg.norm(forward) * jnp.linalg.norm(up)
-    ):
+    cross = np.linalg.norm(np.cross(forward, up), axis=-1)
+    if np.any(cross <= 1e-9 * length * np.linalg.norm(up, axis=-1)):
         raise ValueError(
             f"{prefix}up: must not be parallel to the view direction, got up={up.tolist()} and "
             f"target - eye = {forward.tolist()}"

@@ -157,6 +157,35 @@ def test_entry_points_check_a_camera_made_around_the_constructor():
         dofjax.render(scene, {})
 
 
+def test_entry_points_check_a_closed_over_camera_inside_jit():
+    # Inside jax.jit a camera closed over by the traced function has concrete leaves next to
+    # the traced ones: the checks run on those in NumPy (a jnp check of a concrete leaf is
+    # staged out under jit, and its truth value was a tracer: every jitted defocus or render
+    # of a replaced camera failed with TracerBoolConversionError, session 32's code).
+    cam = Camera(width=8, height=8, fov=45.0, focus_distance=2.0, aperture_radius=0.1)
+    scene = dofjax.scene_from_dict({"objects": [
+        {"type": "sphere", "center": [0, 0, 3], "radius": 1, "material": "m"}],
+        "materials": {"m": {"diffuse": 0.5}}})
+    rgb = np.random.default_rng(0).random((8, 8, 3))
+    depth = np.linspace(1.5, 4.0, 64).reshape(8, 8)
+
+    def blurred(d):
+        return dofjax.defocus(rgb, depth, cam.replace(focus_distance=d), window=4.0)
+
+    np.testing.assert_allclose(jax.jit(blurred)(2.5), blurred(2.5), atol=1e-6)
+    assert np.isfinite(jax.jit(jax.grad(lambda d: jnp.sum(blurred(d) ** 2)))(2.5))
+    image = jax.jit(lambda d: dofjax.render(scene, cam.replace(focus_distance=d)).rgb)(2.5)
+    np.testing.assert_allclose(image, dofjax.render(scene, cam).rgb, atol=1e-6)
+    # a concrete leaf that breaks its rule is still named inside jit
+    bad = eqx.tree_at(lambda c: c.eye, cam, jnp.asarray([0.0, float("inf"), 0.0]))
+    with pytest.raises(ValueError, match=r"^defocus: camera\.eye: must be finite"):
+        jax.jit(lambda d: dofjax.defocus(rgb, depth, bad.replace(focus_distance=d),
+                                         window=4.0))(2.5)
+    parallel = eqx.tree_at(lambda c: c.up, cam, jnp.asarray([0.0, 0.0, 1.0]))
+    with pytest.raises(ValueError, match=r"^render: camera\.up: must not be parallel"):
+        jax.jit(lambda d: dofjax.render(scene, parallel.replace(focus_distance=d)).rgb)(2.5)
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [
