@@ -15,7 +15,10 @@
    what the resampling adds equals the full-resolution kernel's, and bilinearly upsampled. So
    every disc kernel is at most 7 x 7 taps and the cost per slice falls as 1/s^2: a radius-16
    disc costs what a radius-2 disc does at 1/64 of the pixels. Only levels |m| <= 3 run at full
-   resolution: a full-resolution slice costs ~6 ms at 512 x 512 in memory traffic alone.
+   resolution: a full-resolution slice costs ~6 ms at 512 x 512 in memory traffic alone. A
+   reduced-resolution run reads the sources as their 2 x 2 polyphase components (`_phases`,
+   split once per run), so its slices are built from contiguous arrays (strided reads cost the
+   CPU ~2x per slice; the 512 x 512 forward pass 4-6 % faster, the same numbers).
 3. Slices are composited front to back, one `lax.scan` per run of levels that share a resolution
    and blur method (compiles in seconds; reverse mode stores one carry per slice; a
    `lax.switch` on the level's kernel inside the scan pays each level only its own taps; the
@@ -215,6 +218,15 @@ def _downsample(x, s: int):
         x = (x[..., 0::2, 0::2] + x[..., 0::2, 1::2] + x[..., 1::2, 0::2] + x[..., 1::2, 1::2]) / 4
         s //= 2
     return x
+
+
+def _phases(x):
+    """The 2 x 2 polyphase components of x (..., h, w), h and w even, as one (..., 4, h / 2,
+    w / 2) array: x[..., a::2, b::2] at index 2 a + b (the order `_downsample` sums them in)."""
+    *lead, h, w = x.shape
+    y = x.reshape(*lead, h // 2, 2, w // 2, 2)
+    y = jnp.moveaxis(y, (-3, -1), (-4, -3))
+    return y.reshape((*lead, 4, h // 2, w // 2))
 
 
 def _upsample(x, s: int):
@@ -796,16 +808,19 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
         def padded(x):
             return lay.view(x, i_run)
 
-        colour_p, q_p, alpha_p = padded(colour), padded(q), padded(alpha)
-        d_alpha_p = [padded(x) for x in d_alpha]
-        if mirror:
-            refl_p, q_r_p = padded(refl), padded(q_r)
-        if masked:
-            cover_p = padded(cover)
+        # the sources with this run's border; at reduced resolution as their 2 x 2 polyphase
+        # components (`_phases`, made once per run): every level's slice is then built from
+        # contiguous arrays and the first halving of its box average is a sum of the four
+        # (strided reads of the full-resolution fields cost ~2x per level on the CPU)
+        src = (padded(colour), padded(q), padded(alpha), [padded(x) for x in d_alpha],
+               padded(refl) if mirror else None, padded(q_r) if mirror else None,
+               padded(cover) if masked else None)
+        if s > 1:
+            src = jax.tree_util.tree_map(_phases, src)
         xs = lay.level_table(i_run, dtype) + (ks, reached[np.asarray(ps)])
         each = range(colour.shape[0])
 
-        def slice_parts(weight, occ):
+        def slice_parts(colour_p, weight, occ):
             # the channels are built and blurred as separate arrays, the sums over the few
             # sources written out: a concatenated (5, H, W) slice compiled on XLA CPU to a
             # fusion 4-5x slower than the same arithmetic per channel (and the fused
@@ -829,9 +844,11 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
                       jnp.asarray(False))
             return new, ys
 
-        def full(state, x):
-            q3, first, last, kernel = x
-            q3 = (q3[0], q3[1], q3[2])
+        def build(src, q3, first, last):
+            """The slice's fields (per lane: colour, coverage, occluders, ...) from the sources
+            `src` (at reduced resolution each with its 2 x 2 phases on axis -3), and the sum of
+            the sources' weights (> 0 where any source reaches the slice)."""
+            colour_p, q_p, alpha_p, d_alpha_p, refl_p, q_r_p, cover_p = src
             # source by source, as (H, W) arrays summed written out: on the stacked (S, H, W)
             # sources XLA CPU compiled the weights into fusions several times slower per
             # element for S > 1 (a second layer made the 512 x 512 forward pass 2.2x slower)
@@ -843,10 +860,12 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
             # crossing a level never switches its occlusion on or off (the loss stays continuous
             # in focus and aperture)
             occ = [front[k] + back[k] * bw[k] for k in each]
-            lanes = [slice_parts([front[k] + back[k] for k in each], occ)]
+            lanes = [slice_parts(colour_p, [front[k] + back[k] for k in each], occ)]
+            reach = sum(fw[k] + bw[k] for k in each)
             if mirror:
                 mirror_w = _level_weights(q_r_p, q3, first, last)
                 lanes[0].append(sum(mirror_w) * refl_p)
+                reach = reach + sum(mirror_w)
             if masked:  # the footprint, at the visible surface's (the mirror's) depth
                 lanes[0].append((fw[0] + bw[0]) * cover_p)
             if tangents:
@@ -868,19 +887,26 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
                         d_occ.append(d_front * a + fw[k] * da
                                      + bw[k] * (2.0 * d_back * a + bw[k] * da))
                         d_w.append(d_front * a + fw[k] * da + d_back * a + bw[k] * da)
-                lanes.append(slice_parts(d_w, d_occ))
+                lanes.append(slice_parts(colour_p, d_w, d_occ))
                 if mirror:
                     lanes[-1].append(mirror_s * d_q[i](q_r_p) * refl_p)
                 if masked:
                     lanes[-1].append(sum(slopes[0]) * d_q[i](q_p[0]) * cover_p)
-            fields = [_downsample(x, s) for parts in lanes for x in parts]
+            return [x for parts in lanes for x in parts], reach
+
+        def full(state, x):
+            q3, first, last, kernel = x
+            q3 = (q3[0], q3[1], q3[2])
+            built, reach = build(src, q3, first, last)
+            if s == 1:
+                fields = built
+            else:  # the 2 x 2 box average (the phases summed as `_downsample` sums them)
+                fields = [_downsample(sum(x[..., i, :, :] for i in range(4)) / 4, s // 2)
+                          for x in built]
             state, ys_sectors = blur_composite(state, fields, kernel)
             ys = None
             if residuals:  # does any source (or the mirror) reach this slice?
-                has = jnp.any(sum(fw[k] + bw[k] for k in each) > 0.0)
-                if mirror:
-                    has = has | jnp.any(sum(mirror_w) > 0.0)
-                ys = (ys_sectors, has)
+                ys = (ys_sectors, jnp.any(reach > 0.0))
             return state, ys
 
         def composite(state, blurred):
