@@ -76,6 +76,20 @@ def test_reduced_resolution_level_approximates_its_convolution(c):
     assert np.mean(moments) == pytest.approx((k * (kx**2 + ky**2)).sum(), rel=1e-6)
 
 
+def test_polyphase_components_sum_to_the_box_average():
+    # the reduced-resolution runs build their slices from the sources' 2 x 2 phases
+    # (`_phases`): phase 2 a + b is x[..., a::2, b::2], whatever the leading axes, and the
+    # phases' mean is the first halving of `_downsample`
+    x = jnp.asarray(np.random.default_rng(3).random((2, 3, 6, 10)))
+    ph = sliced_mod._phases(x)
+    assert ph.shape == (2, 3, 4, 3, 5)
+    for a in (0, 1):
+        for b in (0, 1):
+            np.testing.assert_array_equal(ph[..., 2 * a + b, :, :], x[..., a::2, b::2])
+    np.testing.assert_array_equal(sum(ph[..., i, :, :] for i in range(4)) / 4,
+                                  sliced_mod._downsample(x, 2))
+
+
 @pytest.mark.parametrize("c", [-4.0, -3.3, 0.4, 2.5, 4.0])
 def test_energy_conserved_away_from_borders(c):
     """Exact, including |c| = 4, a level blurred at half resolution. Within the blur's reach of
