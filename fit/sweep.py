@@ -177,6 +177,11 @@ def plots(rows: list[dict], out: str) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
     for ax, name in zip(axes, ("focus_distance", "aperture_radius")):
         rs = [r for r in rows if np.isfinite(r["sigma"])]
+        if not rs:  # (an empty plot with a legend of nothing: say why instead)
+            ax.text(0.5, 0.5, f"{name}: no samples with Gaussian noise in this manifest",
+                    ha="center", va="center", transform=ax.transAxes)
+            ax.set_axis_off()
+            continue
         for kind in kinds:
             ks = [r for r in rs if r["kind"] == kind]
             if ks:
