@@ -297,7 +297,12 @@ def coc_radius(depth: ArrayLike, camera: Camera) -> Array:
     Returns:
         An array shaped like `depth`: > 0 in front of the focal plane, < 0 behind it,
         finite (-A k / d) at z = +inf.
+
+    Raises:
+        ValueError: a concrete camera leaf that `Camera(...)` would reject (e.g. a focus
+            distance <= 0 from `camera.replace`), named as `coc_radius: camera.<field>`.
     """
+    check_camera(camera, "coc_radius")
     depth = jnp.asarray(depth)
     inv = inverse_depth(depth)
     return camera.aperture_radius * camera.pixel_scale * (inv - 1.0 / camera.focus_distance)

@@ -181,6 +181,15 @@ def test_entry_points_check_a_closed_over_camera_inside_jit():
     with pytest.raises(ValueError, match=r"^defocus: camera\.eye: must be finite"):
         jax.jit(lambda d: dofjax.defocus(rgb, depth, bad.replace(focus_distance=d),
                                          window=4.0))(2.5)
+    # coc_radius, public too, checks the same way (a concrete bad leaf named, traced ones not)
+    with pytest.raises(ValueError, match=r"^coc_radius: camera\.focus_distance: must be > 0"):
+        coc_radius(depth, cam.replace(focus_distance=-1.0))
+    with pytest.raises(ValueError, match=r"^coc_radius: camera\.aperture_radius: must be >= 0"):
+        shut = cam.replace(aperture_radius=-0.1)
+        jax.jit(lambda d: coc_radius(depth, shut.replace(focus_distance=d)))(2.5)
+    np.testing.assert_allclose(
+        jax.jit(lambda d: coc_radius(depth, cam.replace(focus_distance=d)))(2.5),
+        coc_radius(depth, cam.replace(focus_distance=2.5)), rtol=1e-6)
     parallel = eqx.tree_at(lambda c: c.up, cam, jnp.asarray([0.0, 0.0, 1.0]))
     with pytest.raises(ValueError, match=r"^render: camera\.up: must not be parallel"):
         jax.jit(lambda d: dofjax.render(scene, parallel.replace(focus_distance=d)).rgb)(2.5)
