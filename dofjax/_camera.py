@@ -61,17 +61,16 @@ def _check_leaves(camera, prefix: str) -> None:
     cameras, leaves with a leading axis, is checked element by element)."""
     for name in _LEAVES:
         value = getattr(camera, name)
+        if not _is_concrete(value):
+            continue
+        v = np.asarray(value, dtype=np.float64)  # on the host: a jnp test is staged under jit
         if name in _RULES:
             ok, why = _RULES[name]
-            if _is_concrete(value):
-                v = np.asarray(value, dtype=np.float64)
-                bad = ~(np.isfinite(v) & ok(v))
-                if np.any(bad):
-                    raise ValueError(f"{prefix}{name}: {why}, got {v[bad].flat[0].item()!r}")
-        elif _is_concrete(value):
-            v = np.asarray(value, dtype=np.float64)
-            if not np.all(np.isfinite(v)):
-                raise ValueError(f"{prefix}{name}: must be finite, got {v.tolist()!r}")
+            bad = ~(np.isfinite(v) & ok(v))
+            if np.any(bad):
+                raise ValueError(f"{prefix}{name}: {why}, got {v[bad].flat[0].item()!r}")
+        elif not np.all(np.isfinite(v)):
+            raise ValueError(f"{prefix}{name}: must be finite, got {v.tolist()!r}")
     _check_pose(camera, prefix)
 
 
@@ -303,6 +302,13 @@ def coc_radius(depth: ArrayLike, camera: Camera) -> Array:
             distance <= 0 from `camera.replace`), named as `coc_radius: camera.<field>`.
     """
     check_camera(camera, "coc_radius")
+    return coc_unchecked(depth, camera)
+
+
+def coc_unchecked(depth: ArrayLike, camera: Camera) -> Array:
+    """`coc_radius` without its camera check: for the library's own callers, which checked the
+    camera at their public entry point (`defocus`, `fit_focus`, ...) and call this while
+    tracing, once per source and resolution."""
     depth = jnp.asarray(depth)
     inv = inverse_depth(depth)
     return camera.aperture_radius * camera.pixel_scale * (inv - 1.0 / camera.focus_distance)

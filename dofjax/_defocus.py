@@ -967,6 +967,6 @@ def defocus_fn(
 
 
 def _coc_host(depth, camera):
-    from ._camera import coc_radius
+    from ._camera import coc_unchecked
 
-    return coc_radius(depth, camera)
+    return coc_unchecked(depth, camera)

@@ -70,7 +70,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._autodiff import value_and_jacobian
-from ._camera import Camera, check_camera, coc_radius
+from ._camera import Camera, check_camera, coc_unchecked
 from ._defocus import as_mirror, supersampling
 from ._kernels import bucket_window
 from ._linalg import ThinQR, unit_column_svd
@@ -999,7 +999,7 @@ def _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_sc
     # Which side of the scene each polished minimum is on (the polish may have crossed over).
     has_alt = has_alt & ((ul[0] > u_scene) != (ul_alt[0] > u_scene))
     cam_fit = camera.replace(focus_distance=1.0 / ul[0], aperture_radius=jnp.exp(ul[1]))
-    coc = jnp.abs(coc_radius(search.depth, cam_fit))  # target px
+    coc = jnp.abs(coc_unchecked(search.depth, cam_fit))  # target px
     max_coc = jnp.max(jnp.where(search.weight > 0, coc, 0.0))
     return dict(
         ul=ul, ul_alt=ul_alt, sse=pair_loss[0] * n, sse_alt=pair_loss[1] * n, has_alt=has_alt,

@@ -69,7 +69,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._camera import Camera, coc_radius
+from ._camera import Camera, coc_unchecked
 from ._hidden import hidden_layer
 from ._numerics import safe_div
 from ._sampling import aperture_points
@@ -142,7 +142,7 @@ def _sources(rgb, depth, camera, reflection, layers, window, lv, weights, hidden
     dtype = rgb.dtype
 
     def coc(z):
-        return jnp.clip(coc_radius(z, camera).astype(dtype), -window, window)
+        return jnp.clip(coc_unchecked(z, camera).astype(dtype), -window, window)
 
     surface = rgb if reflection is None else rgb - reflection
     c0 = coc(depth)
@@ -213,14 +213,14 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
     if masked:
         # the footprint on the visible surface's sheets, split like its colour in front of /
         # behind each level (the first two channels of its sheets), read with its occlusion
-        c0 = jnp.clip(coc_radius(depth, camera).astype(dtype), -window, window)
+        c0 = jnp.clip(coc_unchecked(depth, camera).astype(dtype), -window, window)
         extra = _sheets([(mirror.coverage[..., None], _index(c0, lv, weights),
                           jnp.ones(depth.shape, dtype))], len(lv))[..., :2]
         # and the virtual scene, its own single-layer RGB-D (with its occlusion)
         vstack = _sheets(_sources(mirror.radiance, mirror.depth, camera, None, None, window, lv,
                                   weights, hidden), len(lv))
     elif reflection is not None:
-        c_r = jnp.clip(coc_radius(reflection_depth, camera).astype(dtype), -window, window)
+        c_r = jnp.clip(coc_unchecked(reflection_depth, camera).astype(dtype), -window, window)
         extra = _split(_index(c_r, lv, weights), len(lv))[..., None] * reflection[None]
     n_extra = 0 if extra is None else extra.shape[-1]
     if n_extra:  # read along each ray (the reflection without occlusion)

@@ -85,7 +85,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._camera import Camera, coc_radius
+from ._camera import Camera, coc_unchecked
 from ._kernels import MAGNITUDES, R0, bucket_window, cell_kernel
 from ._numerics import safe_div, safe_sqrt
 from ._rgbd import Layers
@@ -379,16 +379,16 @@ def surface_sources(rgb, depth, reflection, layers, camera, levels):
     surface = rgb if reflection is None else rgb - reflection
     out = [(surface, depth, ones)]
     if layers is not None:
-        i0 = _level_index(coc_radius(depth, camera).astype(rgb.dtype), levels)
+        i0 = _level_index(coc_unchecked(depth, camera).astype(rgb.dtype), levels)
         for k in range(1, layers.depth.shape[0]):
-            ik = _level_index(coc_radius(layers.depth[k], camera).astype(rgb.dtype), levels)
+            ik = _level_index(coc_unchecked(layers.depth[k], camera).astype(rgb.dtype), levels)
             out.append((layers.rgb[k], layers.depth[k], layers.alpha[k] * _behind(ik, i0)))
     return out
 
 
 def _sources(rgb, depth, layers, camera, levels, reflection=None):
     """(colour, signed CoC, coverage) of every surface (see `surface_sources`)."""
-    return [(colour, coc_radius(z, camera).astype(rgb.dtype), alpha)
+    return [(colour, coc_unchecked(z, camera).astype(rgb.dtype), alpha)
             for colour, z, alpha in surface_sources(rgb, depth, reflection, layers, camera,
                                                     levels)]
 
@@ -437,7 +437,7 @@ def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_de
     if mirror is not None:
         cover = jnp.where(inside, pad(mirror.coverage, mirror.coverage.ndim - 2), 0.0)
     elif reflection is not None:
-        c_r = coc_radius(pad(reflection_depth, reflection_depth.ndim - 2, "edge"),
+        c_r = coc_unchecked(pad(reflection_depth, reflection_depth.ndim - 2, "edge"),
                          camera).astype(rgb.dtype)
         q_r = jnp.where(inside, jnp.sign(c_r) * c_r * c_r, 0.0)
         refl = jnp.moveaxis(refl_p, -1, 0)
