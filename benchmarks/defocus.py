@@ -2,6 +2,7 @@
 
     python benchmarks/defocus.py                  # both tables -> benchmarks/results/defocus.md
     python benchmarks/defocus.py --skip-accuracy  # speed only
+    python benchmarks/defocus.py --skip-accuracy --tune-host-memory  # dofjax.tune_host_memory()
 
 Speed: 512x512 RGB whose |CoC| reaches 16 px, median of repeated runs after JIT warm-up. Each
 repeat times the floor `scipy.signal.fftconvolve(image, disc radius 16)`, the forward pass, the
@@ -156,13 +157,18 @@ def main():
     ap.add_argument("--methods", default="pyramid,sliced",
                     help="defocus methods to time (also sliced+hidden)")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "defocus.md"))
+    ap.add_argument("--tune-host-memory", action="store_true",
+                    help="call dofjax.tune_host_memory() first (XLA heaps <= 30 MiB, glibc keeps "
+                    "freed memory): no page faults on the large programs' temporaries")
     args = ap.parse_args()
+    tuned = dofjax.tune_host_memory() if args.tune_host_memory else None
     if args.float64:
         jax.config.update("jax_enable_x64", True)
     dtype = np.float64 if args.float64 else np.float32
     lines = ["# dofjax.defocus benchmark\n",
              f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores "
              "(ratios interleave both timings, so shared load hits both)\n",
+             f"host memory: {'dofjax.tune_host_memory() ' + str(tuned) if tuned else 'default'}\n",
              f"## Speed: {args.size}x{args.size} RGB, max |c| {args.max_coc:g} px, "
              f"{np.dtype(dtype).name}\n",
              "| what | median ms | scipy fftconvolve ms | x scipy | x forward | compile s |",

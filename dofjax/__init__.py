@@ -19,6 +19,7 @@ from ._fit import (
     fit_focus_batch as fit_focus_batch,
     fit_focus_scene as fit_focus_scene,
 )
+from ._hostmem import tune_host_memory as tune_host_memory
 from ._io import (
     read_exr as read_exr,
     read_exr_layers as read_exr_layers,

@@ -1,0 +1,91 @@
+"""Keep large XLA CPU programs' temporary memory between calls (opt-in, like the compile cache).
+
+XLA's CPU runtime allocates a program's temporaries as one buffer per call (`malloc`), freed
+when the call ends. glibc serves a request of more than 32 MiB by a fresh `mmap` whatever its
+tuning, so every call of such a program touches new pages and the kernel takes a page fault
+and zeroes each 4 KiB of them. At 512 x 512 that is most of dofjax's derivative programs and
+the sliced forward pass with a hidden layer (34 MB of temporaries: 8.6k faults per call), a
+tenth to a seventh of their run time (benchmarks/README.md, "Defocus speed", session 34).
+
+`tune_host_memory` removes that cost in two steps: XLA splits the temporaries into heaps of at
+most `HEAP_BYTES` (`--xla_multiheap_size_constraint_per_heap`, read when JAX starts its CPU
+backend), and glibc keeps freed memory for reuse (`mallopt`: allocations up to 32 MiB from its
+heaps, none of it given back to the kernel below 1 GiB free). The process then keeps up to
+that much memory it no longer uses, as a caching allocator (jemalloc, tcmalloc) would. (One
+malloc arena for all threads also removed the few faults left in worker threads' arenas, but
+LLVM's compile threads then queued on it: +3.5 s compile for a 512 x 512 gradient.) Results
+are unchanged: only where buffers live changes. A single buffer larger than `HEAP_BYTES` (at
+1024 x 1024, a run's stacked slices) still gets a heap of its own, mapped afresh as before,
+and XLA logs a warning about it when it compiles ("Alloc buffer size ... larger than the
+per-heap size limit"). Nothing in dofjax calls it: the allocator is the process owner's choice.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import sys
+import warnings
+
+HEAP_BYTES = 30 << 20  # below glibc's 32 MiB ceiling for requests it serves from its heap
+FLAG = "--xla_multiheap_size_constraint_per_heap"
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3  # <malloc.h>
+_MMAP_THRESHOLD = 32 << 20  # glibc's largest allowed value
+_TRIM_THRESHOLD = 1 << 30
+
+
+def _glibc():
+    """The C library if it is glibc (which has `mallopt`), else None."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        libc.gnu_get_libc_version  # noqa: B018 (glibc only)
+        libc.mallopt  # noqa: B018
+    except (OSError, AttributeError):
+        return None
+    return libc
+
+
+def _backends_started() -> bool:
+    try:
+        from jax._src import xla_bridge
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):  # a JAX without the query: assume the worst
+        return True
+
+
+def tune_host_memory() -> dict[str, bool]:
+    """Let repeated calls of large CPU programs reuse their memory instead of faulting it in.
+
+    Call once, before the first JAX computation of the process (the XLA part is read when
+    JAX starts its backend). Opt-in: it changes the whole process's allocator (see the
+    module docstring). Pays off for programs with more than 32 MiB of temporaries (at 512 x
+    512: `jax.jacfwd` / `jax.grad` of a defocus, the sliced forward pass with a hidden layer);
+    a 256 x 256 fit does not change.
+
+    Returns:
+        {"xla": whether XLA's heaps are limited (now, or already by the user's `XLA_FLAGS`),
+        "allocator": whether glibc was told to keep freed memory (False off glibc)}.
+
+    Warns (RuntimeWarning) when JAX's backend has already started: then only the allocator
+    part applies; put `--xla_multiheap_size_constraint_per_heap=31457280` in `XLA_FLAGS`
+    before starting Python, or pass it to `jax.jit(..., compiler_options=...)`.
+    """
+    flags = os.environ.get("XLA_FLAGS", "")
+    xla = FLAG in flags
+    if not xla:
+        if _backends_started():
+            warnings.warn(
+                "tune_host_memory: JAX's backend has already started, so XLA's heaps keep "
+                f"their size; call it before the first JAX computation or set XLA_FLAGS="
+                f"{FLAG}={HEAP_BYTES}", RuntimeWarning, stacklevel=2)
+        else:
+            os.environ["XLA_FLAGS"] = f"{flags} {FLAG}={HEAP_BYTES}".strip()
+            xla = True
+    libc = _glibc()
+    allocator = libc is not None and bool(
+        libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD)
+        and libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD))
+    return {"xla": xla, "allocator": allocator}
