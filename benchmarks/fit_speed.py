@@ -44,7 +44,10 @@ def main(argv=None) -> None:
     p.add_argument("--out", default=os.path.join(HERE, "results", "fit_speed.md"))
     p.add_argument("--method", default="sliced", choices=("sliced", "pyramid"),
                    help="defocus method for the target, the fit and the scipy residual")
+    p.add_argument("--tune-host-memory", action="store_true",
+                   help="call dofjax.tune_host_memory() first (pays off from ~512x512)")
     a = p.parse_args(argv)
+    tuned = dofjax.tune_host_memory() if a.tune_host_memory else None
     scene_path = os.path.join(HERE, "..", "examples", "quads.json")
     scene = dofjax.load_scene(scene_path)
     c0 = dofjax.load_camera(scene_path)
@@ -139,7 +142,8 @@ def main(argv=None) -> None:
     text = (f"# fit speed, {a.size}x{a.size} quads.json, window {a.window} px, defocus method "
             f"{a.method}, "
             f"{os.cpu_count()} CPUs (load average {os.getloadavg()[0]:.1f}), screen_steps "
-            f"{screen}, scan_points {scan}\n\n"
+            f"{screen}, scan_points {scan}, host memory "
+            f"{'tuned ' + str(tuned) if tuned else 'default'}\n\n"
             f"truth d={truth['focus_distance']} A={truth['aperture_radius']}, guess "
             f"d={guess['focus_distance']} A={guess['aperture_radius']}; jax x64="
             f"{jax.config.jax_enable_x64}\n\n" + "\n".join(lines) +
