@@ -164,7 +164,9 @@ class FitResult(eqx.Module):
         condition: condition number of the column-normalised Jacobian (1 = orthogonal effects).
         max_coc: largest |CoC| over the image at the solution, pixels.
         camera: the input camera with the fitted focus distance and aperture radius.
-        message: human-readable summary of the flags (a tuple of strings for a batch).
+        message: human-readable summary of the flags (a tuple of strings for a batch); "ok",
+            or the notes, also e.g. when `max_coc` is beyond the defocus window (the model
+            clamped those pixels' blur: the fit is biased though it converged).
     """
 
     focus_distance: Float[Array, "*b"]
@@ -1546,6 +1548,15 @@ def _message(raw: dict, fixed_names: tuple[str, ...], max_condition: float, thre
         notes.append(f"the largest CoC at the solution is {float(raw['max_coc']):.3g} px: the "
                      "target looks in focus everywhere, so focus and aperture are not determined")
         identifiable = False
+    # the defocus clamps |c| beyond its (bucketed) window: a solution that needs more blur than
+    # the model can give is biased, though the solver converged (a user's window= too small,
+    # or the automatic one capped by max_window)
+    window = getattr(getattr(spec, "search_model", None), "window", None)
+    if window is not None and float(raw["max_coc"]) > bucket_window(window) * (1.0 + 1e-6):
+        notes.append(f"the largest CoC at the solution is {float(raw['max_coc']):.3g} px, beyond "
+                     f"the defocus window of {bucket_window(window):g} px: the model clamps "
+                     "those pixels' blur, which biases the fit (pass a larger window=, or "
+                     "max_window= with the automatic window)")
     cond = float(raw["condition"])
     if len(spec.free) == 2 and not cond <= max_condition:
         notes.append(f"J^T J is near-singular (normalised condition number of J {cond:.3g} > "

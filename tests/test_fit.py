@@ -723,3 +723,28 @@ def test_parameter_with_a_huge_tile_robust_error_is_not_identifiable():
     raw["ul"] = np.array([0.0, np.log(0.05)])  # focus at infinity (u = 0): no division error
     identifiable, _, message = _message(raw, (), 1e4, 4.0, spec)
     assert identifiable and message == "ok", message
+
+
+def test_a_solution_beyond_the_window_is_reported():
+    # host side: the fit converged, but its largest CoC (11.7 px) is beyond the model's window
+    # (8 px, bucketed to 8): the defocus clamped those pixels, so the message says so
+    from types import SimpleNamespace
+
+    from dofjax._fit import DefocusModel, _message
+
+    raw = dict(pred_finite=True, frac=np.array([0.5, 0.5]), max_coc=11.7, condition=3.0,
+               s2=1e-4, rms_target=0.5, sse=1.0, sse_alt=np.inf, has_alt=False,
+               ul=np.array([0.25, np.log(0.04)]), ul_alt=np.array([0.25, np.log(0.04)]),
+               converged=True, cov=np.diag([1e-6, 1e-8]), cov_tiles=np.diag([1e-6, 1e-8]))
+    spec = SimpleNamespace(free=(0, 1), search_model=DefocusModel(window=8.0))
+    identifiable, _, message = _message(raw, (), 1e4, 4.0, spec)
+    assert identifiable and "11.7 px, beyond the defocus window of 8 px" in message, message
+    raw["max_coc"] = 7.99  # inside the window: nothing to say
+    assert _message(raw, (), 1e4, 4.0, spec)[2] == "ok"
+    # a window between levels is bucketed up by the defocus (5 -> 6 px): 5.5 px is not clamped
+    raw["max_coc"] = 5.5
+    spec.search_model = DefocusModel(window=5.0)
+    assert _message(raw, (), 1e4, 4.0, spec)[2] == "ok"
+    spec.search_model = lambda rgb, depth, camera: rgb  # a user's model has no window
+    raw["max_coc"] = 100.0
+    assert _message(raw, (), 1e4, 4.0, spec)[2] == "ok"
