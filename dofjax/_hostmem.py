@@ -5,8 +5,8 @@ when the call ends. glibc serves a request of more than 32 MiB (the largest mmap
 accepts) by a fresh `mmap` and unmaps it on `free`, so every call of such a program touches
 new pages and the kernel takes a page fault and zeroes each 4 KiB of them. At 512 x 512 that
 is most of dofjax's derivative programs and the sliced forward pass with a hidden layer (34 MB
-of temporaries: 8.6k faults per call), a tenth to a seventh of their run time
-(benchmarks/README.md, "Defocus speed", session 34).
+of temporaries: 8.6k faults per call), 8-15 % of their run time (benchmarks/README.md,
+"Defocus speed", session 34).
 
 `tune_host_memory` removes that cost in two steps: XLA splits the temporaries into heaps of at
 most `HEAP_BYTES` (`--xla_multiheap_size_constraint_per_heap`, read when JAX starts its CPU
