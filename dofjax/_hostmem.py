@@ -72,7 +72,8 @@ def tune_host_memory() -> dict[str, bool]:
 
     Warns (RuntimeWarning) when JAX's backend has already started: then only the allocator
     part applies; put `--xla_multiheap_size_constraint_per_heap=31457280` in `XLA_FLAGS`
-    before starting Python, or pass it to `jax.jit(..., compiler_options=...)`.
+    before starting Python, or give a jitted function `jax.jit(f, compiler_options=
+    {"xla_multiheap_size_constraint_per_heap": 31457280})` (that program only).
     """
     flags = os.environ.get("XLA_FLAGS", "")
     xla = FLAG in flags
