@@ -1551,10 +1551,11 @@ def _message(raw: dict, fixed_names: tuple[str, ...], max_condition: float, thre
     # the defocus clamps |c| beyond its (bucketed) window: a solution that needs more blur than
     # the model can give is biased, though the solver converged (a user's window= too small,
     # or the automatic one capped by max_window)
-    window = getattr(getattr(spec, "search_model", None), "window", None)
-    if window is not None and float(raw["max_coc"]) > bucket_window(window) * (1.0 + 1e-6):
+    window = getattr(spec.search_model, "window", None)  # (None: a user's model)
+    window = None if window is None else bucket_window(window)
+    if window is not None and float(raw["max_coc"]) > window * (1.0 + 1e-6):
         notes.append(f"the largest CoC at the solution is {float(raw['max_coc']):.3g} px, beyond "
-                     f"the defocus window of {bucket_window(window):g} px: the model clamps "
+                     f"the defocus window of {window:g} px: the model clamps "
                      "those pixels' blur, which biases the fit (pass a larger window=, or "
                      "max_window= with the automatic window)")
     cond = float(raw["condition"])

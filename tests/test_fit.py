@@ -712,7 +712,7 @@ def test_parameter_with_a_huge_tile_robust_error_is_not_identifiable():
                ul=np.array([0.1, np.log(0.05)]), ul_alt=np.array([0.1, np.log(0.05)]),
                converged=True, cov=np.diag([0.5 ** 2, 1e-6 ** 2]),
                cov_tiles=np.diag([6.0 ** 2, 1e-5 ** 2]))
-    spec = SimpleNamespace(free=(0, 1))
+    spec = SimpleNamespace(free=(0, 1), search_model=None)
     identifiable, ambiguous, message = _message(raw, (), 1e4, 4.0, spec)
     assert not identifiable and not ambiguous
     assert "focus_distance is not determined by this image" in message
