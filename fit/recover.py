@@ -26,6 +26,8 @@ import numpy as np
 
 import dofjax
 from dofjax import _compile_cache as compile_cache
+from dofjax._fit import LOSSES, SOLVERS
+from fit._errors import user_errors
 from fit._table import format_table, result_rows
 
 
@@ -49,7 +51,8 @@ def _camera(meta: dict, shape, fallback: dofjax.Camera | None, focus, aperture) 
 
 
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description="Recover focus distance and aperture of a target.")
+    p = argparse.ArgumentParser(prog="python -m fit.recover",
+                                description="Recover focus distance and aperture of a target.")
     p.add_argument("target")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--sharp", help="sharp RGB-D EXR (R, G, B, Z)")
@@ -57,11 +60,15 @@ def main(argv=None) -> None:
     p.add_argument("--focus", type=float, help="initial focus distance guess")
     p.add_argument("--aperture", type=float, help="initial aperture radius guess")
     p.add_argument("--fov", type=float, help="horizontal fov (deg) if the files lack it")
-    p.add_argument("--focus-bounds", type=float, nargs=2)
-    p.add_argument("--aperture-bounds", type=float, nargs=2)
-    p.add_argument("--solver", default="lm")
-    p.add_argument("--loss", default="l2")
-    p.add_argument("--starts", type=int, default=8)
+    p.add_argument("--focus-bounds", type=float, nargs=2, metavar=("MIN", "MAX"),
+                   help="focus distance bounds (default: half the nearest depth or guess, to inf)")
+    p.add_argument("--aperture-bounds", type=float, nargs=2, metavar=("MIN", "MAX"),
+                   help="aperture radius bounds (default: the guess / 10 to 10x the guess)")
+    p.add_argument("--solver", default="lm", choices=SOLVERS, help="optimistix solver")
+    p.add_argument("--loss", default="l2", choices=LOSSES,
+                   help="huber / cauchy: robust to clipped or outlying pixels")
+    p.add_argument("--starts", type=int, default=8,
+                   help="multi-start points in inverse focus distance")
     p.add_argument("--window", type=float, help="defocus window (px)")
     p.add_argument("--method", default="sliced", choices=("sliced", "pyramid", "lens"),
                    help="the fit's defocus model (lens: polishes what a sliced search found)")
@@ -87,13 +94,15 @@ def main(argv=None) -> None:
         p.error(f"--supersample must be >= 1, got {a.supersample}")
     if a.layers is not None and a.layers < 1:
         p.error(f"--layers must be >= 1, got {a.layers}")
+    with user_errors("recover"):  # a missing or unreadable file, a bad value: named, no traceback
+        _run(a)
 
+
+def _run(a: argparse.Namespace) -> None:
     target, _, tmeta = dofjax.read_exr(a.target)
     if a.sharp:
-        try:  # the mirror layer and peeled layers, when the file has them, enter the fit
-            sharp, smeta = dofjax.read_rgbd(a.sharp)
-        except ValueError as e:
-            raise SystemExit(f"recover: {e}") from None
+        # the mirror layer and peeled layers, when the file has them, enter the fit
+        sharp, smeta = dofjax.read_rgbd(a.sharp)
         meta = {**smeta}
         if a.fov is not None:
             meta["fov"] = a.fov
@@ -118,12 +127,10 @@ def main(argv=None) -> None:
         bounds["aperture_radius"] = tuple(a.aperture_bounds)
     options = ({"method": a.method} | ({"samples": a.samples} if a.samples is not None else {})
                | ({"subapertures": a.subapertures} if a.subapertures != 1 else {}))
-    try:
-        result = dofjax.fit_focus(target, sharp, camera, bounds=bounds or None, solver=a.solver,
-                                  loss=a.loss, starts=a.starts, window=a.window,
-                                  defocus_options=options)
-    except ValueError as e:  # bad input: named, before any solver ran
-        raise SystemExit(f"recover: {e}") from None
+    # bad input (shapes, NaN, bounds, options) raises ValueError before any solver runs
+    result = dofjax.fit_focus(target, sharp, camera, bounds=bounds or None, solver=a.solver,
+                              loss=a.loss, starts=a.starts, window=a.window,
+                              defocus_options=options)
     truth = {k: tmeta.get(k) for k in ("focus_distance", "aperture_radius")}
     if tmeta.get("role") == "sharp":
         truth = {}

@@ -26,6 +26,7 @@ import numpy as np
 import dofjax
 from dofjax import _compile_cache as compile_cache
 
+from ._errors import user_errors
 from ._table import format_table
 
 
@@ -223,8 +224,31 @@ def plots(rows: list[dict], out: str) -> None:
     plt.close(fig)
 
 
+def read_manifest(path: str) -> list[dict]:
+    """The records of a data_gen manifest (JSON lines), each checked for what a fit reads;
+    ValueError naming the file and line otherwise (e.g. a sample's JSON passed by mistake)."""
+    with open(path) as f:
+        lines = [(n, line) for n, line in enumerate(f, 1) if line.strip()]
+    records = []
+    for n, line in lines:
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path}, line {n}: not a data_gen manifest line ({e})") from None
+        keys = ("index", "files", "truth", "kind", "noise")
+        missing = [k for k in keys if not isinstance(rec, dict) or k not in rec]
+        if missing:
+            raise ValueError(f"{path}, line {n}: not a data_gen manifest record (no "
+                             f"{', '.join(missing)}); pass OUT_DIR/manifest.jsonl")
+        records.append(rec)
+    if not records:
+        raise ValueError(f"{path}: empty manifest, no samples to fit")
+    return records
+
+
 def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description="Fit a data_gen data set and summarise the errors.")
+    p = argparse.ArgumentParser(prog="python -m fit.sweep",
+                                description="Fit a data_gen data set and summarise the errors.")
     p.add_argument("manifest")
     p.add_argument("--limit", type=int)
     p.add_argument("--window", type=float, default=16.0,
@@ -238,11 +262,15 @@ def main(argv=None) -> None:
     compile_cache.add_argument(p)
     a = p.parse_args(argv)
     compile_cache.use_in_script("sweep", a.jax_cache)
+    with user_errors("sweep"):  # a missing manifest or sample file, a bad value: named
+        _run(a)
+
+
+def _run(a: argparse.Namespace) -> None:
     root = os.path.dirname(os.path.abspath(a.manifest))
     out = a.out or root
     os.makedirs(out, exist_ok=True)
-    with open(a.manifest) as f:
-        records = [json.loads(line) for line in f if line.strip()]
+    records = read_manifest(a.manifest)
     records = records[: a.limit] if a.limit else records
     rng = np.random.default_rng(a.seed)
     rows = []

@@ -58,3 +58,35 @@ def test_recover_rejects_options_that_do_not_apply(tmp_path, capsys):
         recover.main([path, "--scene", SCENE, "--method", "lens", "--samples", "0"])
     with pytest.raises(SystemExit, match=r"subapertures must be an int in \[1, 16\], got 0"):
         recover.main([path, "--scene", SCENE, "--subapertures", "0"])
+
+
+def test_scripts_name_a_missing_or_unreadable_file(tmp_path):
+    # one line naming the file (SystemExit's message), not a traceback from the reader
+    from fit import sweep
+
+    target = str(tmp_path / "t.exr")
+    dofjax.write_exr(target, np.zeros((4, 4, 3), np.float32))
+    missing = str(tmp_path / "missing.exr")
+    with pytest.raises(SystemExit, match=r"^recover: error: .*missing\.exr: no such file"):
+        recover.main([missing, "--sharp", target])
+    with pytest.raises(SystemExit, match=r"^recover: error: .*missing\.exr: no such file"):
+        recover.main([target, "--sharp", missing])
+    with pytest.raises(SystemExit, match=r"^recover: error: .*nope\.json: cannot read scene"):
+        recover.main([target, "--scene", str(tmp_path / "nope.json")])
+    text = tmp_path / "notes.txt"
+    text.write_text("not an image\n")
+    with pytest.raises(SystemExit, match=r"^recover: error: .*notes\.txt: not a readable image"):
+        recover.main([str(text), "--sharp", target])
+    with pytest.raises(SystemExit, match=r"^sweep: error: .*No such file"):
+        sweep.main([str(tmp_path / "manifest.jsonl")])
+    with pytest.raises(SystemExit, match=r"notes\.txt, line 1: not a data_gen manifest line"):
+        sweep.main([str(text), "--out", str(tmp_path)])
+    record = tmp_path / "record.jsonl"
+    record.write_text('{"files": {}}\n')
+    with pytest.raises(SystemExit, match=r"line 1: not a data_gen manifest record \(no index, "
+                       r"truth, kind, noise\)"):
+        sweep.main([str(record), "--out", str(tmp_path)])
+    empty = tmp_path / "empty.jsonl"
+    empty.write_text("\n")
+    with pytest.raises(SystemExit, match="empty manifest"):
+        sweep.main([str(empty), "--out", str(tmp_path)])
