@@ -14,6 +14,7 @@ Conventions, as Mitsuba 3 and pbrt-v4:
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -43,8 +44,17 @@ def check_margin(name: str, margin) -> int:
 _LEAVES = ("fov", "focus_distance", "aperture_radius", "eye", "target", "up")
 
 
-def _as_vec3(x) -> Array:
-    return jnp.asarray(x, dtype=jnp.result_type(float)).reshape(3)
+def _as_vec3(x, name: str = "vector") -> Array:
+    x = jnp.asarray(x, dtype=jnp.result_type(float))
+    if x.size != 3:
+        raise ValueError(f"Camera.{name}: must be 3 numbers (x, y, z), got shape {x.shape}")
+    return x.reshape(3)
+
+
+def _as_size(x):
+    """A NumPy integer width or height as a Python int (a static field must not be an array);
+    anything else is left to `Camera.__check_init__` to judge."""
+    return int(x) if isinstance(x, np.integer) else x
 
 
 # What `Camera(...)` accepts of each scalar leaf (the pose is checked by `_check_pose`).
@@ -117,14 +127,17 @@ class Camera(eqx.Module):
     `eqx.tree_at` (or `camera.replace(focus_distance=...)`).
     """
 
-    width: int = eqx.field(static=True)
-    height: int = eqx.field(static=True)
+    width: int = eqx.field(static=True, converter=_as_size)
+    height: int = eqx.field(static=True, converter=_as_size)
     fov: Float[Array, ""] = eqx.field(converter=_as_float)
     focus_distance: Float[Array, ""] = eqx.field(converter=_as_float)
     aperture_radius: Float[Array, ""] = eqx.field(converter=_as_float)
-    eye: Float[Array, "3"] = eqx.field(converter=_as_vec3, default=(0.0, 0.0, 0.0))
-    target: Float[Array, "3"] = eqx.field(converter=_as_vec3, default=(0.0, 0.0, 1.0))
-    up: Float[Array, "3"] = eqx.field(converter=_as_vec3, default=(0.0, 1.0, 0.0))
+    eye: Float[Array, "3"] = eqx.field(converter=functools.partial(_as_vec3, name="eye"),
+                                       default=(0.0, 0.0, 0.0))
+    target: Float[Array, "3"] = eqx.field(converter=functools.partial(_as_vec3, name="target"),
+                                          default=(0.0, 0.0, 1.0))
+    up: Float[Array, "3"] = eqx.field(converter=functools.partial(_as_vec3, name="up"),
+                                      default=(0.0, 1.0, 0.0))
 
     def __check_init__(self):
         for name in ("width", "height"):
@@ -154,15 +167,21 @@ class Camera(eqx.Module):
         under 2 % for d > 50 f.
 
         Raises:
-            ValueError: focal_length, f_number or sensor_width <= 0, or focus_distance <=
-                focal_length (a thin lens cannot focus inside its focal length).
+            TypeError: a length or f_number that is not a number.
+            ValueError: focal_length, f_number or sensor_width <= 0, focus_distance not
+                finite or <= focal_length (a thin lens cannot focus inside its focal length).
         """
-        for name, value in (
-            ("focal_length", focal_length),
-            ("f_number", f_number),
-            ("sensor_width", sensor_width),
-        ):
-            if not math.isfinite(float(value)) or float(value) <= 0.0:
+        terms = dict(focal_length=focal_length, f_number=f_number, sensor_width=sensor_width,
+                     focus_distance=focus_distance)
+        for name, value in terms.items():
+            try:
+                v = float(value)
+            except (TypeError, ValueError):
+                raise TypeError(f"Camera.from_photographic: {name} must be a number, got "
+                                f"{value!r}") from None
+            if not math.isfinite(v):
+                raise ValueError(f"Camera.from_photographic: {name} must be finite, got {value!r}")
+            if name != "focus_distance" and v <= 0.0:
                 raise ValueError(f"Camera.from_photographic: {name} must be > 0, got {value!r}")
         if not float(focus_distance) > float(focal_length):
             raise ValueError(
@@ -203,7 +222,7 @@ class Camera(eqx.Module):
             lambda c: tuple(getattr(c, n) for n in names),
             self,
             tuple(_as_float(changes[n]) if n in ("fov", "focus_distance", "aperture_radius")
-                  else _as_vec3(changes[n]) for n in names),
+                  else _as_vec3(changes[n], n) for n in names),
         )
 
     def padded(self, margin: int) -> Camera:
@@ -299,9 +318,16 @@ def coc_radius(depth: ArrayLike, camera: Camera) -> Array:
 
     Raises:
         ValueError: a concrete camera leaf that `Camera(...)` would reject (e.g. a focus
-            distance <= 0 from `camera.replace`), named as `coc_radius: camera.<field>`.
+            distance <= 0 from `camera.replace`), named as `coc_radius: camera.<field>`; a
+            concrete depth with NaN or values <= 0 (it would read as the background's CoC).
     """
     check_camera(camera, "coc_radius")
+    if _is_concrete(depth):
+        z = np.asarray(depth)
+        if np.any(np.isnan(z)) or np.any(z <= 0):
+            bad = int(np.count_nonzero(np.isnan(z) | (z <= 0)))
+            raise ValueError(f"coc_radius: depth must be > 0 (z-depth in front of the lens, "
+                             f"+inf for background), found {bad} NaN or <= 0 value(s)")
     return coc_unchecked(depth, camera)
 
 

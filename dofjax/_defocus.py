@@ -606,6 +606,20 @@ def _as_array(x, dtype=None):
     return x.astype(dtype)
 
 
+def as_colour(name: str, what: str, x, dtype=None):
+    """`x` (None or linear colour) as a floating-point array (`_as_array`); integer or bool colour
+    is refused: an 8-bit image is sRGB-coded, and read as numbers 0..255 it would be blurred as
+    if it were linear."""
+    if x is None:
+        return None
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        raise ValueError(
+            f"{name}: {what} must be a floating-point array of linear colour, got dtype "
+            f"{x.dtype} (8-bit images are sRGB-coded: decode one with dofjax.read_image)")
+    return _as_array(x, dtype)
+
+
 def as_mirror(name: str, mirror, dtype) -> Mirror | None:
     """`mirror` (None or a `Mirror`) with its fields as `dtype` arrays; anything else is a
     TypeError naming `name`. Values and shapes: `_validate`."""
@@ -614,7 +628,8 @@ def as_mirror(name: str, mirror, dtype) -> Mirror | None:
     if not isinstance(mirror, Mirror):
         raise TypeError(f"{name}: mirror must be a dofjax Mirror, got {type(mirror).__name__}")
     return Mirror(coverage=_as_array(mirror.coverage, dtype),
-                  radiance=_as_array(mirror.radiance, dtype), depth=_as_array(mirror.depth, dtype))
+                  radiance=as_colour(name, "mirror.radiance", mirror.radiance, dtype),
+                  depth=_as_array(mirror.depth, dtype))
 
 
 def check_hidden(name: str, hidden, method: str, layers=None) -> bool:
@@ -658,30 +673,37 @@ def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, meth
             rotation, ratio, samples=None, margin=0, hidden=None, mirror=None, subapertures=1):
     """Unpack `(rgb, depth, camera)` or `(rgbd, camera)`, convert and validate on the host: the one
     input path of `defocus` and `defocus_fn`."""
+    usage = f"call as {name}(rgb, depth, camera) or {name}(rgbd, camera)"
     if isinstance(rgb, RGBD):
-        if camera is not None:
-            raise TypeError(f"{name}(rgbd, camera): pass the camera as the second argument only")
-        rgbd, camera = rgb, depth
+        if depth is not None and camera is not None:
+            raise TypeError(f"{name}(rgbd, camera): the camera was passed twice (as the second "
+                            "argument and as camera=)")
+        rgbd, camera = rgb, (depth if camera is None else camera)
         rgb, depth = rgbd.rgb, rgbd.depth
         reflection = rgbd.reflection if reflection is None else reflection
         reflection_depth = rgbd.reflection_depth if reflection_depth is None else reflection_depth
         layers = rgbd.layers if layers is None else layers
         mirror = rgbd.mirror if mirror is None else mirror
-    elif camera is None:
-        raise TypeError(f"{name}: call as {name}(rgb, depth, camera) or {name}(rgbd, camera)")
+    elif depth is None or camera is None:
+        raise TypeError(f"{name}: {usage}")
+    if isinstance(depth, Camera):
+        raise TypeError(f"{name}: depth is a Camera: {usage}")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"{name}: camera must be a dofjax.Camera, got {type(camera).__name__} "
+                        f"({usage})")
     if method not in METHODS:
         raise ValueError(f"{name}: method must be one of {METHODS}, got {method!r}")
     check_samples(name, samples, method)
     subapertures = check_subapertures(name, subapertures, method)
     hidden = check_hidden(name, hidden, method, layers)
     margin = check_margin(name, margin)
-    camera = camera.padded(margin) if isinstance(camera, Camera) else camera
+    camera = camera.padded(margin)
     blades, rotation, ratio = _shape_config(shape, blades, rotation, ratio)
-    rgb = _as_array(rgb)
+    rgb = as_colour(name, "rgb", rgb)
     dtype = rgb.dtype
     depth = _as_array(depth, dtype)
     mirror = as_mirror(name, mirror, dtype)
-    reflection = _as_array(reflection, dtype)
+    reflection = as_colour(name, "reflection", reflection, dtype)
     reflection_depth = _as_array(reflection_depth, dtype)
     s = supersampling(rgb.shape, camera)
     camera = camera.scaled(s)
@@ -711,7 +733,7 @@ def supersampling(shape: tuple[int, ...], camera: Camera) -> int:
 
 def defocus(
     rgb: ArrayLike | RGBD,
-    depth: ArrayLike | Camera,
+    depth: ArrayLike | Camera | None = None,
     camera: Camera | None = None,
     *,
     shape: str = "disc",
@@ -888,7 +910,7 @@ def defocus(
 
 def defocus_fn(
     rgb: ArrayLike | RGBD,
-    depth: ArrayLike | Camera,
+    depth: ArrayLike | Camera | None = None,
     camera: Camera | None = None,
     *,
     window: float | None = None,
@@ -952,6 +974,7 @@ def defocus_fn(
         return camera.replace(focus_distance=focus_distance, aperture_radius=aperture_radius)
 
     def f(focus_distance, aperture_radius):
+        _check_call(focus_distance, aperture_radius)
         return _run_and_pool(rgb, depth, _cam(focus_distance, aperture_radius), reflection,
                              reflection_depth, layers, mirror, window=win, blades=blades,
                              rotation=rotation, ratio=ratio, method=method, samples=samples,
@@ -964,6 +987,22 @@ def defocus_fn(
     f.window = win / s
     f.max_abs_coc = max_abs_coc
     return f
+
+
+def _check_call(focus_distance, aperture_radius) -> None:
+    """`defocus_fn`'s f called with concrete values (outside jit and vmap, where the solvers
+    call it traced): scalars, a focus distance > 0 and an aperture >= 0, both finite."""
+    for what, x, ok, rule in (("focus_distance", focus_distance, np.greater, "> 0"),
+                              ("aperture_radius", aperture_radius, np.greater_equal, ">= 0")):
+        if not _is_concrete(x):
+            continue
+        a = np.asarray(x)
+        if a.ndim:
+            raise ValueError(f"defocus_fn's f: {what} must be a scalar, got shape {a.shape} "
+                             "(for many values, jax.vmap f)")
+        if not (np.isfinite(a) and ok(a, 0)):
+            raise ValueError(
+                f"defocus_fn's f: {what} must be finite and {rule}, got {float(a)!r}")
 
 
 def _coc_host(depth, camera):

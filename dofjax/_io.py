@@ -296,7 +296,8 @@ def _read_all(path: str) -> tuple[str, Any, np.ndarray]:
             )
         pixels = inp.read_image(oiio.FLOAT)
         if pixels is None:
-            raise ValueError(f"{path}: could not read pixels ({oiio.geterror().strip()})")
+            reason = (inp.geterror() or oiio.geterror()).strip() or "truncated or corrupt file"
+            raise ValueError(f"{path}: could not read pixels ({reason})")
     finally:
         inp.close()
     pixels = np.asarray(pixels, dtype=np.float32)
@@ -416,6 +417,11 @@ def write_exr(
     """
     path = _path_str(path)
     _check_extension(path, (".exr",), "write_exr")
+    from ._rgbd import RGBD
+
+    if isinstance(rgb, RGBD):
+        raise TypeError("write_exr: got an RGBD; write it (its mirror and peeled layers too) "
+                        "with write_rgbd(path, rgbd), or pass rgbd.rgb, rgbd.depth")
     rgb = _as_float_array(path, "rgb", rgb)
     _check_image_shape(path, "rgb", rgb, 3)
     _check_colour(path, "rgb", rgb)
@@ -576,6 +582,11 @@ def write_rgbd(
     `mirror.A` (coverage) and `mirror.Z` (depth); peeled layer k of `rgbd.layers` ->
     `layer<k>.R/G/B/A` (colour and coverage) and `layer<k>_depth.Z`.
     """
+    from ._rgbd import RGBD  # (imported late, as in read_rgbd: _io itself needs no JAX)
+
+    if not isinstance(rgbd, RGBD):
+        raise TypeError(f"write_rgbd: rgbd must be a dofjax.RGBD (from render), got "
+                        f"{type(rgbd).__name__}; for plain arrays use write_exr(path, rgb, depth)")
     extra: dict[str, Any] = {}
     if rgbd.reflection is not None:
         extra["reflection"] = rgbd.reflection

@@ -109,6 +109,8 @@ def test_from_photographic_values():
         (dict(aperture_radius=-0.1), r"Camera\.aperture_radius: must be >= 0, got -0\.1"),
         (dict(target=(0.0, 0.0, 0.0)), r"Camera\.target: must differ"),
         (dict(up=(0.0, 0.0, 2.0)), r"Camera\.up: must not be parallel"),
+        (dict(width=True), r"Camera\.width: must be an integer >= 1, got True"),
+        (dict(eye=(0.0, 0.0)), r"Camera\.eye: must be 3 numbers \(x, y, z\), got shape \(2,\)"),
     ],
 )
 def test_camera_validation(kwargs, match):
@@ -202,14 +204,35 @@ def test_entry_points_check_a_closed_over_camera_inside_jit():
         (dict(focal_length=-0.05), r"focal_length must be > 0"),
         (dict(sensor_width=0.0), r"sensor_width must be > 0"),
         (dict(focus_distance=0.04), r"focus_distance must exceed focal_length"),
+        (dict(focus_distance=math.inf), r"focus_distance must be finite, got inf"),
+        (dict(f_number=None), r"f_number must be a number, got None"),
     ],
 )
 def test_photographic_validation(kwargs, match):
     base = dict(width=16, height=16, focal_length=0.05, f_number=2.0, sensor_width=0.036,
                 focus_distance=2.0)
     base.update(kwargs)
-    with pytest.raises(ValueError, match=match):
+    with pytest.raises(TypeError if "number," in match else ValueError, match=match):
         Camera.from_photographic(**base)
+
+
+def test_numpy_integer_sizes_are_plain_ints(recwarn):
+    cam = Camera(width=np.int64(16), height=np.int32(12), fov=45.0, focus_distance=2.0,
+                 aperture_radius=0.1)
+    assert type(cam.width) is int and type(cam.height) is int
+    assert cam == Camera(width=16, height=12, fov=45.0, focus_distance=2.0, aperture_radius=0.1)
+    assert not recwarn.list  # (equinox warns when an array is set as a static field)
+    with pytest.raises(ValueError, match=r"Camera\.up: must be 3 numbers"):
+        cam.replace(up=(0.0, 1.0))
+
+
+def test_coc_radius_rejects_depths_it_would_read_as_background():
+    cam = Camera(width=16, height=16, fov=45.0, focus_distance=2.0, aperture_radius=0.1)
+    with pytest.raises(ValueError, match=r"coc_radius: depth must be > 0 .* found 3 NaN or <= 0"):
+        coc_radius(np.array([0.0, -2.0, np.nan, 1.0]), cam)
+    # +inf is the background; traced depths are the caller's business
+    assert np.isfinite(coc_radius(np.array([1.0, np.inf]), cam)).all()
+    assert jax.jit(coc_radius)(jnp.array([1.0, 2.0]), cam).shape == (2,)
 
 
 def test_camera_values_do_not_recompile():

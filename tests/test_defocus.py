@@ -497,6 +497,11 @@ def test_seed_baseline_is_the_hard_disc_normalised_by_pi_r2():
         (dict(kw=dict(ratio=0.0)), "ratio"),
         (dict(kw=dict(reflection=np.zeros((24, 24, 3)))), "together"),
         (dict(kw=dict(window=-1.0)), "window must be > 0"),
+        # 8-bit colour is sRGB-coded: refused, not blurred as numbers 0..255
+        (dict(rgb=np.full((24, 24, 3), 128, np.uint8)), "rgb must be a floating-point array"),
+        (dict(kw=dict(reflection=np.zeros((24, 24, 3), np.int32),
+                      reflection_depth=np.full((24, 24), 5.0))),
+         "reflection must be a floating-point array"),
         # checked before the window is used to reach past a mirror's footprint
         (dict(kw=dict(window=float("nan"), mirror=dofjax.Mirror(
             coverage=np.ones((24, 24)), radiance=np.zeros((24, 24, 3)),
@@ -512,6 +517,38 @@ def test_bad_input_errors(change, match):
         cam = eqx.tree_at(lambda c: c.aperture_radius, cam, jnp.asarray(change["aperture"]))
     with pytest.raises(ValueError, match=match):
         defocus(rgb, depth, cam, **change.get("kw", {}))
+
+
+def test_call_forms_and_misplaced_arguments():
+    n = 8
+    rgb, depth, cam = np.full((n, n, 3), 0.5), np.full((n, n), 3.0), camera(n)
+    rgbd = dofjax.RGBD(rgb=rgb, depth=depth)
+    np.testing.assert_array_equal(defocus(rgbd, camera=cam), defocus(rgbd, cam))
+    np.testing.assert_array_equal(defocus(rgbd, cam), defocus(rgb, depth, cam))
+    # an integer depth is a distance like any other
+    np.testing.assert_array_equal(defocus(rgb, depth.astype(int), cam), defocus(rgb, depth, cam))
+    for args, kw, match in (((rgbd, cam), dict(camera=cam), "the camera was passed twice"),
+                            ((rgb, cam, depth), {}, "depth is a Camera"),
+                            ((rgb, depth, {"width": n}), {}, "camera must be a dofjax.Camera, "
+                             "got dict"),
+                            ((rgb,), dict(camera=cam), r"call as defocus\(rgb, depth, camera\)"),
+                            ((rgb, depth), {}, r"call as defocus\(rgb, depth, camera\)")):
+        with pytest.raises(TypeError, match=match):
+            defocus(*args, **kw)
+
+
+def test_defocus_fn_checks_concrete_arguments_of_its_function():
+    n = 8
+    f = defocus_fn(np.full((n, n, 3), 0.5), np.full((n, n), 3.0), camera(n), window=2)
+    for args, match in (((-3.0, 0.1), "focus_distance must be finite and > 0, got -3.0"),
+                        ((3.0, float("nan")), "aperture_radius must be finite and >= 0"),
+                        ((jnp.array([3.0, 4.0]), 0.1), r"focus_distance must be a scalar, got "
+                         r"shape \(2,\) \(for many values, jax.vmap f\)")):
+        with pytest.raises(ValueError, match=match):
+            f(*args)
+    # traced (jit, vmap: how solvers call it) the values are not checked on the host
+    out = jax.vmap(jax.jit(f), (0, None))(jnp.array([3.0, 4.0]), 0.1)
+    np.testing.assert_allclose(out[0], f(3.0, 0.1), rtol=1e-6)
 
 
 def test_public_names():

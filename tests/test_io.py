@@ -397,6 +397,25 @@ def test_not_an_image(tmp_path):
         dofjax.read_exr(tmp_path)
 
 
+def test_truncated_file_names_the_reason(tmp_path):
+    good = tmp_path / "good.exr"
+    dofjax.write_exr(good, np.full((32, 32, 3), 0.5, np.float32), np.ones((32, 32), np.float32))
+    data = good.read_bytes()
+    cut = tmp_path / "cut.exr"
+    cut.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match=r"cut\.exr: (could not read pixels|not a readable "
+                       r"image) \([^)]+\)"):  # a reason, not "()"
+        dofjax.read_exr(cut)
+
+
+def test_writers_name_the_wrong_kind_of_input(tmp_path):
+    rgb, depth = np.full((4, 4, 3), 0.5, np.float32), np.ones((4, 4), np.float32)
+    with pytest.raises(TypeError, match=r"write_rgbd: rgbd must be a dofjax.RGBD .*got ndarray"):
+        dofjax.write_rgbd(tmp_path / "a.exr", rgb)
+    with pytest.raises(TypeError, match=r"write_exr: got an RGBD; .* write_rgbd\(path, rgbd\)"):
+        dofjax.write_exr(tmp_path / "a.exr", RGBD(rgb=rgb, depth=depth))
+
+
 def test_png_is_not_exr(tmp_path):
     dofjax.write_png(tmp_path / "p.png", np.zeros((2, 2, 3)))
     with pytest.raises(ValueError, match=r"p\.png: not an OpenEXR file .*read_image"):

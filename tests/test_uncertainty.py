@@ -154,6 +154,11 @@ def test_bad_input():
         fisher_information(rgb, depth, TRUE, 0.01, model=blend_model, mask=np.ones((3, 3)))
     with pytest.raises(ValueError, match="fixed: names"):
         cramer_rao_bound(rgb, depth, TRUE, 0.01, model=blend_model, fixed="fov")
+    # the default model's window: checked, not clamped to 1 px
+    for kw, name in ((dict(window=-5.0), "window"), (dict(window=0.0), "window"),
+                     (dict(max_window=float("nan")), "max_window")):
+        with pytest.raises(ValueError, match=rf"^{name}: must be finite and > 0 px"):
+            fisher_information(rgb, depth, TRUE, 0.01, **kw)
 
 
 def test_fit_spread_matches_bound_monte_carlo():
