@@ -59,7 +59,7 @@ import dataclasses
 import inspect
 import math
 import numbers
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import equinox as eqx
@@ -1084,6 +1084,27 @@ def _check_array(name: str, x, shape_tail: tuple[int, ...], batch: bool = False)
     return a
 
 
+def _integer(key: str, value, least: int) -> int:
+    """`value` (a Python or numpy integer, not a bool) >= `least`, as an int."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+        raise ValueError(f"{key}: must be an integer >= {least}, got {value!r}")
+    return int(value)
+
+
+def _real(value) -> float:
+    """A real number (not a bool) as a float; NaN for anything else, so that a range check on
+    it fails."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
+    return float(value) if ok else math.nan
+
+
+def _check_colour(name: str, a: np.ndarray) -> None:
+    if a.dtype.kind in "biu":  # (bool, signed or unsigned integers)
+        raise ValueError(f"{name}: must be a floating-point array of linear colour, got dtype "
+                         f"{a.dtype} (an 8- or 16-bit image is sRGB-encoded: use "
+                         "dofjax.read_image or convert it to linear float first)")
+
+
 def _check_finite(name: str, a: np.ndarray) -> None:
     bad = ~np.isfinite(a)
     if bad.any():
@@ -1099,10 +1120,13 @@ def _check_images(rgb, depth, camera: Camera) -> tuple[np.ndarray, np.ndarray, i
     depth_a = np.asarray(depth)
     if depth_a.ndim != 2:
         raise ValueError(f"depth: expected shape (H, W), got {depth_a.shape}")
+    if depth_a.dtype == bool:  # (integer depths are distances: fine)
+        raise ValueError("depth: must be a numeric array of z-depths, got dtype bool")
     hw = depth_a.shape
     rgb_a = np.asarray(rgb)
     if rgb_a.shape != hw + (3,):
         raise ValueError(f"rgb: expected shape {hw + (3,)} to match depth {hw}, got {rgb_a.shape}")
+    _check_colour("rgb", rgb_a)
     s = supersampling(hw, camera)
     if hw != (s * camera.height, s * camera.width):
         raise ValueError(
@@ -1142,8 +1166,7 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
     if loss not in LOSSES:
         raise ValueError(f"loss: must be one of {LOSSES}, got {loss!r}")
     for key, (value, least) in counts.items():
-        if isinstance(value, bool) or not isinstance(value, int) or value < least:
-            raise ValueError(f"{key}: must be an integer >= {least}, got {value!r}")
+        _integer(key, value, least)
     for key, value in tolerances.items():
         if value is not None and (isinstance(value, bool) or not isinstance(value, numbers.Real)
                                   or not value >= 0):
@@ -1163,6 +1186,10 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
             f"target: expected shape {f'(B, {hw[0]}, {hw[1]}, 3)' if batch else hw + (3,)} to "
             f"match the camera{f' (rgb/depth are {s}x finer)' if s > 1 else ' and rgb/depth'}, "
             f"got {tgt.shape}")
+    if batch and not len(tgt):
+        raise ValueError(f"targets: the batch is empty (shape {tgt.shape}): need at least one "
+                         "target image")
+    _check_colour("target", tgt)
     _check_finite("target", tgt)
     weight = _depth_weight(depth_a, mask, hw)
     finite = np.isfinite(depth_a)
@@ -1172,14 +1199,16 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
         raise ValueError("depth: no finite depth under the mask (all background): nothing to fit")
     d0 = float(camera.focus_distance)
     a0 = float(camera.aperture_radius)
+    if bounds is not None and not isinstance(bounds, Mapping):
+        raise TypeError(f"bounds: must be a dict {{name: (lower, upper)}}, got {bounds!r}")
     bounds = dict(bounds or {})
     for key in bounds:
         if key not in PARAMS:
             raise ValueError(f"bounds: keys must be in {PARAMS}, got {key!r}")
     z = depth_a[finite & (_upsample(weight, s) > 0)]
     if "focus_distance" in bounds:
-        lo, hi = (float(v) for v in bounds["focus_distance"])
-        if not lo > 0 or math.isnan(hi):
+        lo, hi = _bound_pair("focus_distance", bounds["focus_distance"])
+        if not lo > 0:
             raise ValueError(f"bounds['focus_distance']: lower bound must be > 0, got ({lo}, {hi})")
         if not lo < hi:
             raise ValueError(f"bounds['focus_distance']: inverted or empty, lower {lo} >= "
@@ -1191,7 +1220,7 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
     else:
         d_bounds = (0.5 * min(float(z.min()), d0), math.inf)
     if "aperture_radius" in bounds:
-        lo, hi = (float(v) for v in bounds["aperture_radius"])
+        lo, hi = _bound_pair("aperture_radius", bounds["aperture_radius"])
         if not lo >= 0 or not math.isfinite(hi):
             raise ValueError(f"bounds['aperture_radius']: need 0 <= lower < upper < inf, got "
                              f"({lo}, {hi})")
@@ -1209,6 +1238,27 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
                              "positive guess or bounds={'aperture_radius': (lo, hi)}")
         a_bounds = (a0 / 10.0, a0 * 10.0)
     return tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds, s
+
+
+def _bound_pair(key: str, value) -> tuple[float, float]:
+    """bounds[key] as floats (lower, upper); None as focus_distance's upper bound is +inf (the
+    default: no upper bound)."""
+    try:
+        lo, hi = value
+    except (TypeError, ValueError):
+        raise TypeError(f"bounds[{key!r}]: must be a pair (lower, upper), got {value!r}") from None
+    if key == "focus_distance" and hi is None:
+        hi = math.inf
+    out = []
+    for which, v in (("lower", lo), ("upper", hi)):
+        try:  # (float(): numpy and jax scalars too)
+            v = float(v)
+        except (TypeError, ValueError):
+            raise TypeError(f"bounds[{key!r}]: {which} bound must be a number, got {v!r}") from None
+        if math.isnan(v):
+            raise ValueError(f"bounds[{key!r}]: {which} bound is NaN, got {value!r}")
+        out.append(v)
+    return out[0], out[1]
 
 
 def _upsample(weight: np.ndarray, s: int) -> np.ndarray:
@@ -1313,17 +1363,20 @@ def _levels(hw: tuple[int, int], coarse_size: int | None) -> int:
 
 
 def _unpack(name: str, rgb, depth, camera, model):
-    """`(rgb, depth, camera)` or `(rgbd, camera)` -> rgb, depth, camera and the RGBD's extras
-    (mirror layer, peeled layers; None for plain arrays), checked on the host."""
+    """`(rgb, depth, camera)` or `(rgbd, camera)` (the camera third or as camera=) -> rgb, depth,
+    camera and the RGBD's extras (mirror layer, peeled layers; None for plain arrays), checked
+    on the host."""
     if not isinstance(rgb, RGBD):
-        if camera is None:
+        if depth is None or camera is None:
             raise TypeError(f"{name}: call as {name}(target, rgb, depth, camera) or "
                             f"{name}(target, rgbd, camera)")
         return rgb, depth, camera, None
-    if camera is not None:
+    if depth is not None and camera is not None:
         raise TypeError(f"{name}(target, rgbd, camera): pass the camera as the third argument "
-                        "only")
-    rgbd, camera = rgb, depth
+                        "only (or as camera=; the RGBD carries its own depth)")
+    if depth is None and camera is None:
+        raise TypeError(f"{name}(target, rgbd, camera): the camera is missing")
+    rgbd, camera = rgb, (camera if depth is None else depth)
     if rgbd.reflection is None and rgbd.layers is None and rgbd.mirror is None:
         return rgbd.rgb, rgbd.depth, camera, None
     if model is not None:
@@ -1411,19 +1464,38 @@ def _depth_modes(fracs: np.ndarray, n: int = _SCAN_MODES) -> np.ndarray:
 
 def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, batch,
              rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds, window,
-             max_window, defocus_options, start_steps, screen_steps, scan_points,
-             name="fit_focus"):
+             max_window, defocus_options, start_steps, screen_steps, scan_points, max_condition,
+             ambiguity_threshold, name="fit_focus"):
     rgb, depth, camera, extras = _unpack(name, rgb, depth, camera, model)
     if ((defocus_options or {}).get("hidden") and extras is not None
             and extras.layers is not None):
         raise ValueError(f"{name}: defocus_options hidden=True estimates the hidden background "
                          "of single-layer input, but the RGBD has peeled layers (they are the "
                          "hidden surfaces)")
+    counts = dict(starts=(starts, 1), max_steps=(max_steps, 1), start_steps=(start_steps, 1),
+                  screen_steps=(screen_steps, 0), scan_points=(scan_points, 0),
+                  robust_rounds=(robust_rounds, 0))
+    if coarse_size is not None:  # (None: the multi-start at full resolution)
+        counts["coarse_size"] = (coarse_size, 1)
     tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds, s = _validate(
-        target, rgb, depth, camera, mask, bounds, fixed, solver, loss, batch,
-        dict(starts=(starts, 1), max_steps=(max_steps, 1), start_steps=(start_steps, 1),
-             screen_steps=(screen_steps, 0), scan_points=(scan_points, 0)),
+        target, rgb, depth, camera, mask, bounds, fixed, solver, loss, batch, counts,
         dict(rtol=rtol, atol=atol))
+    # (numpy integers pass the checks: plain ints from here on, static in the spec)
+    starts, max_steps, start_steps, screen_steps, scan_points, robust_rounds = (
+        int(counts[k][0]) for k in ("starts", "max_steps", "start_steps", "screen_steps",
+                                    "scan_points", "robust_rounds"))
+    coarse_size = None if coarse_size is None else int(coarse_size)
+    # (NaN, or not a real number: fails every check)
+    if window is not None and not 0 < _real(window) < math.inf:
+        raise ValueError(f"window: must be finite and > 0 px (or None: automatic), got "
+                         f"{window!r}")
+    if not 0 < _real(max_window) < math.inf:
+        raise ValueError(f"max_window: must be finite and > 0 px, got {max_window!r}")
+    if not _real(max_condition) > 1:  # (a normalised condition number is >= 1; inf: no limit)
+        raise ValueError(f"max_condition: must be > 1, got {max_condition!r}")
+    if not 0 <= _real(ambiguity_threshold) < math.inf:
+        raise ValueError(f"ambiguity_threshold: must be a finite number >= 0, got "
+                         f"{ambiguity_threshold!r}")
     dtype = jnp.result_type(float)
     x64 = dtype == jnp.float64
     rtol = (1e-8 if x64 else 1e-6) if rtol is None else rtol
@@ -1650,7 +1722,7 @@ def _result(raw: dict, camera: Camera, fixed_names, max_condition, threshold, sp
 def fit_focus(
     target: ArrayLike,
     rgb: ArrayLike | RGBD,
-    depth: ArrayLike | Camera,
+    depth: ArrayLike | Camera | None = None,
     camera: Camera | None = None,
     *,
     bounds: dict[str, tuple[float, float]] | None = None,
@@ -1681,9 +1753,10 @@ def fit_focus(
         target: (H, W, 3) the blurred image, linear colour.
         rgb, depth: (H, W, 3) sharp linear colour and (H, W) z-depth (world units, +inf for the
             background) it was made from. They do not depend on the parameters: computed once.
-            Or call `fit_focus(target, rgbd, camera)` with an `RGBD` from `render` or
-            `read_rgbd`: its mirror layer (blurred at its virtual depth) and peeled layers (what
-            a blurred foreground uncovers) then enter the model too, as in `defocus(rgbd, ...)`.
+            Or call `fit_focus(target, rgbd, camera)` (or `camera=camera`) with an `RGBD` from
+            `render` or `read_rgbd`: its mirror layer (blurred at its virtual depth) and peeled
+            layers (what a blurred foreground uncovers) then enter the model too, as in
+            `defocus(rgbd, ...)`.
             Supersampled: a sharp input s times the target's size per side, rendered with
             `camera.scaled(s)`. The polish then defocuses it on its own grid and box-averages
             the prediction to the target's pixels; the search runs on it box-averaged first. A
@@ -1783,13 +1856,15 @@ def fit_focus(
 
     Raises:
         ValueError: on shape mismatches, NaN/inf in target or rgb, invalid depth, inverted or
-            invalid bounds, an initial guess outside the bounds, unknown solver/loss/fixed names;
-            all before any solver runs.
+            invalid bounds, an initial guess outside the bounds, unknown solver/loss/fixed names,
+            out-of-range options, integer (e.g. 8-bit sRGB) target or rgb; all before any
+            solver runs.
+        TypeError: bounds not (lower, upper) pairs, a missing depth or camera.
     """
     prep = _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, False,
                     rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds,
                     window, max_window, defocus_options, start_steps, screen_steps,
-                    scan_points)
+                    scan_points, max_condition, ambiguity_threshold)
     data, camera, fine, cameras, param, y_starts, u_scene, delta0, spec = prep
     raw = _fit_jit(data, camera, fine, cameras, param, y_starts, u_scene, delta0, spec)
     fixed_names = tuple(PARAMS[i] for i in range(2) if i not in spec.free)
@@ -1812,8 +1887,22 @@ def fit_focus_scene(target: ArrayLike, scene, camera: Camera, *, spp: int = 1,
     """
     from ._raycast import render
 
+    supersample = _integer("supersample", supersample, 1)
     rgbd = render(scene, camera.scaled(supersample), spp=spp, layers=layers)
     return fit_focus(target, rgbd, camera, **kwargs)
+
+
+def _devices(devices) -> list:
+    """`fit_focus_batch`'s devices: None (all of `jax.devices()`) or a non-empty sequence."""
+    if devices is None:
+        return list(jax.devices())
+    out = list(devices) if isinstance(devices, Iterable) else None
+    if out is None or not all(isinstance(d, jax.Device) for d in out):
+        raise TypeError(f"devices: must be a sequence of jax devices (e.g. jax.devices()) or "
+                        f"None, got {devices!r}")
+    if not out:
+        raise ValueError("devices: empty, need at least one device (None: all of jax.devices())")
+    return out
 
 
 @eqx.filter_jit
@@ -1840,7 +1929,7 @@ def _batch_jit(targets, data, camera, fine, cameras, param, y_starts, u_scene, d
 def fit_focus_batch(
     targets: ArrayLike,
     rgb: ArrayLike | RGBD,
-    depth: ArrayLike | Camera,
+    depth: ArrayLike | Camera | None = None,
     camera: Camera | None = None,
     *,
     devices: Sequence[Any] | None = None,
@@ -1873,6 +1962,7 @@ def fit_focus_batch(
     for key in kwargs:
         if key not in names or key in ("target", "rgb", "depth", "camera"):
             raise TypeError(f"fit_focus_batch: unexpected keyword argument {key!r}")
+    devices = _devices(devices)
     opts = {k: p.default for k, p in names.items() if p.kind == p.KEYWORD_ONLY}
     opts.update(kwargs)
     prep = _prepare(targets, rgb, depth, camera, opts["mask"], opts["bounds"], opts["fixed"],
@@ -1880,9 +1970,9 @@ def fit_focus_batch(
                     opts["atol"], opts["max_steps"], opts["model"], opts["coarse_size"],
                     opts["loss_scale"], opts["robust_rounds"], opts["window"],
                     opts["max_window"], opts["defocus_options"], opts["start_steps"],
-                    opts["screen_steps"], opts["scan_points"], name="fit_focus_batch")
+                    opts["screen_steps"], opts["scan_points"], opts["max_condition"],
+                    opts["ambiguity_threshold"], name="fit_focus_batch")
     data, camera, fine, cameras, param, y_starts, u_scene, delta0, spec = prep
-    devices = list(jax.devices() if devices is None else devices)
     mesh = Mesh(np.array(devices), ("batch",))
     tg = data.target
     b = tg.shape[0]
