@@ -991,18 +991,17 @@ def defocus_fn(
 
 def _check_call(focus_distance, aperture_radius) -> None:
     """`defocus_fn`'s f called with concrete values (outside jit and vmap, where the solvers
-    call it traced): scalars, a focus distance > 0 and an aperture >= 0, both finite."""
-    for what, x, ok, rule in (("focus_distance", focus_distance, np.greater, "> 0"),
-                              ("aperture_radius", aperture_radius, np.greater_equal, ">= 0")):
+    call it traced): scalars, finite. Their range is not checked: f is the model as a function,
+    and a finite difference at aperture 0 (or at u = 1/d = 0) steps just past its domain."""
+    for what, x in (("focus_distance", focus_distance), ("aperture_radius", aperture_radius)):
         if not _is_concrete(x):
             continue
         a = np.asarray(x)
         if a.ndim:
             raise ValueError(f"defocus_fn's f: {what} must be a scalar, got shape {a.shape} "
                              "(for many values, jax.vmap f)")
-        if not (np.isfinite(a) and ok(a, 0)):
-            raise ValueError(
-                f"defocus_fn's f: {what} must be finite and {rule}, got {float(a)!r}")
+        if not np.isfinite(a):
+            raise ValueError(f"defocus_fn's f: {what} must be finite, got {float(a)!r}")
 
 
 def _coc_host(depth, camera):

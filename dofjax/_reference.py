@@ -42,7 +42,7 @@ from ._types import Image
 _RAYS_PER_CHUNK = 1 << 17
 
 
-def _validate(spp, shape, blades, rotation, ratio, chunk, sampler, camera, key):
+def _validate(spp, shape, blades, rotation, ratio, chunk, sampler, scene, camera, key):
     if isinstance(spp, bool) or not isinstance(spp, int | np.integer) or spp < 1:
         raise ValueError(f"render_reference: spp must be an integer >= 1, got {spp!r}")
     if sampler not in SAMPLERS:
@@ -77,6 +77,12 @@ def _validate(spp, shape, blades, rotation, ratio, chunk, sampler, camera, key):
         isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1
     ):
         raise ValueError(f"render_reference: chunk must be an integer >= 1 or None, got {chunk!r}")
+    if not isinstance(scene, Scene):
+        raise TypeError(
+            f"render_reference: scene must be a dofjax.Scene, got {type(scene).__name__} (build "
+            "one from a scene dictionary with dofjax.scene_from_dict, or from a file with "
+            "dofjax.load_scene)"
+        )
     check_camera(camera, "render_reference")
     if not isinstance(key, jax.Array) or not (
         jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key) or key.dtype == jnp.uint32
@@ -197,9 +203,9 @@ def render_reference(
     Raises:
         ValueError: spp < 1, unknown shape or sampler, blades missing/invalid for the shape,
             ratio <= 0, non-finite rotation, chunk < 1.
-        TypeError: camera not a `Camera`, key not a PRNG key.
+        TypeError: scene not a `Scene`, camera not a `Camera`, key not a PRNG key.
     """
-    _validate(spp, shape, blades, rotation, ratio, chunk, sampler, camera, key)
+    _validate(spp, shape, blades, rotation, ratio, chunk, sampler, scene, camera, key)
     spp = int(spp)
     blades = None if blades is None else int(blades)
     chunk = default_chunk(camera, spp) if chunk is None else int(min(chunk, spp))

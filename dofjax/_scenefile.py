@@ -1144,7 +1144,17 @@ def save_scene(
         path: the .json file to write; its folder must exist.
         camera: optional camera written as the "camera" section (read it with `load_camera`).
         material_names: optional material names (default "material_0", ...).
+
+    Raises:
+        TypeError: scene is not a `Scene`.
     """
+    if not isinstance(scene, Scene):
+        hint = ""
+        if isinstance(scene, Mapping):
+            hint = " (for a scene dictionary, build the Scene with dofjax.scene_from_dict first)"
+        raise TypeError(
+            f"save_scene: scene must be a dofjax.Scene, got {type(scene).__name__}{hint}"
+        )
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     stem = os.path.splitext(os.path.basename(path))[0]
