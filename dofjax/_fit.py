@@ -1045,7 +1045,13 @@ class DefocusModel:
     subapertures: int = 1
 
     def __post_init__(self):
-        from ._defocus import METHODS, check_hidden, check_samples, check_subapertures
+        from ._defocus import (
+            METHODS,
+            _shape_config,
+            check_hidden,
+            check_samples,
+            check_subapertures,
+        )
 
         if self.method not in METHODS:
             raise ValueError(f"DefocusModel: method must be one of {METHODS}, got "
@@ -1053,6 +1059,11 @@ class DefocusModel:
         check_samples("DefocusModel", self.samples, self.method)
         check_hidden("DefocusModel", self.hidden, self.method)
         check_subapertures("DefocusModel", self.subapertures, self.method)
+        # the rest of what `defocus` would reject on the first call, named at construction
+        if not 0 < _real(self.window) < math.inf:
+            raise ValueError(f"DefocusModel: window must be finite and > 0 px, got "
+                             f"{self.window!r}")
+        _shape_config(self.shape, self.blades, self.rotation, self.ratio)
 
     def __call__(self, rgb, depth, camera, reflection=None, reflection_depth=None, layers=None,
                  mirror=None):

@@ -947,6 +947,8 @@ def scene_to_dict(
     Triangles are written as inline meshes, one per run of consecutive triangles that share a
     material (a lone triangle as a "triangle" object), preserving their order.
     """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene_to_dict: scene must be a dofjax.Scene, got {type(scene).__name__}")
     m = scene.materials
     count = m.count
     names = (

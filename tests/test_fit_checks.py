@@ -174,3 +174,14 @@ def test_fit_focus_scene_names_supersample():
     for bad in (0, -2, 1.5, True):
         with pytest.raises(ValueError, match=rf"supersample: must be an integer >= 1, {_got(bad)}"):
             fit_focus_scene(TARGET, None, CAM, supersample=bad)
+
+
+def test_defocus_model_names_a_bad_window_or_shape_when_built():
+    # not at its first call, deep inside a fit
+    for kw, match in ((dict(window=math.nan), r"DefocusModel: window must be finite and > 0 px"),
+                      (dict(window=0.0), r"DefocusModel: window must be finite and > 0 px"),
+                      (dict(window=4.0, shape="hex"), "shape must be 'disc' or 'polygon'"),
+                      (dict(window=4.0, shape="polygon", blades=2), "blades >= 3")):
+        with pytest.raises(ValueError, match=match):
+            dofjax.DefocusModel(**kw)
+    assert dofjax.DefocusModel(window=np.float32(4.0)).window == 4.0

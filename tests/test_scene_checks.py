@@ -250,6 +250,8 @@ def test_wrong_types_are_type_errors(tmp_path):
                        r"\(.*dofjax\.scene_from_dict"):
         dofjax.save_scene(doc, tmp_path / "s.json")
     assert not (tmp_path / "s.json").exists()
+    with pytest.raises(TypeError, match=r"scene_to_dict: scene must be a dofjax\.Scene, got dict"):
+        dofjax.scene_to_dict(doc)
     with pytest.raises(TypeError, match=r"Scene\.materials: must be a dofjax\.Materials, got dict"
                        r" \(.*dofjax\.scene_from_dict\)"):
         Scene(materials={"ambient": [0, 0, 0]})
