@@ -113,6 +113,16 @@ def check_camera(camera, where: str | None = None) -> None:
     _check_leaves(camera, f"{prefix}camera.")
 
 
+def check_single(camera, where: str, hint: str) -> None:
+    """ValueError when `camera` is a batch (leaves with a leading axis, e.g. from `eqx.tree_at`
+    or `jax.vmap`'s out_axes) where one camera is expected; `hint` says what to do instead."""
+    for name in _LEAVES:
+        shape = np.shape(getattr(camera, name))
+        if shape != ((3,) if name in ("eye", "target", "up") else ()):
+            raise ValueError(f"{where}: camera.{name} has shape {shape}: one camera per call, "
+                             f"not a batch ({hint})")
+
+
 class Camera(eqx.Module):
     """A thin-lens camera: pose, horizontal field of view, focus distance and aperture radius.
 

@@ -75,7 +75,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ._autodiff import dense_jacobian, tracing_forward_only
-from ._camera import Camera, check_camera, check_margin
+from ._camera import Camera, check_camera, check_margin, check_single
 from ._hidden import hidden_layer, hidden_layers
 from ._kernels import (
     MAX_WINDOW,
@@ -691,6 +691,8 @@ def _inputs(name, rgb, depth, camera, reflection, reflection_depth, layers, meth
     if not isinstance(camera, Camera):
         raise TypeError(f"{name}: camera must be a dofjax.Camera, got {type(camera).__name__} "
                         f"({usage})")
+    check_single(camera, name, "for many focus distances or apertures, jax.vmap the function "
+                 "defocus_fn returns")
     if method not in METHODS:
         raise ValueError(f"{name}: method must be one of {METHODS}, got {method!r}")
     check_samples(name, samples, method)

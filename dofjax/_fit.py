@@ -70,7 +70,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._autodiff import value_and_jacobian
-from ._camera import Camera, check_camera, coc_unchecked
+from ._camera import Camera, check_camera, check_single, coc_unchecked
 from ._defocus import as_mirror, supersampling
 from ._kernels import bucket_window
 from ._linalg import ThinQR, unit_column_svd
@@ -1172,6 +1172,7 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
     `counts` maps an integer option's name to (value, least allowed value), `tolerances` a
     tolerance's name to its value (a real >= 0, or None for the default)."""
     check_camera(camera)  # (the initial guess and the fixed values)
+    check_single(camera, "fit", "it is the initial guess; for many targets: fit_focus_batch")
     if solver not in SOLVERS:
         raise ValueError(f"solver: must be one of {SOLVERS}, got {solver!r}")
     if loss not in LOSSES:

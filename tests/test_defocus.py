@@ -611,3 +611,19 @@ def test_margin_crops_a_guard_band_render():
             defocus(rgb, depth, cam, margin=bad)
     with pytest.raises(ValueError, match="camera is 14x14"):
         defocus(rgb, depth, cam, margin=1)  # the render's margin is 3
+
+
+def test_a_batch_of_cameras_is_named():
+    n = 8
+    rgb, depth, cam = np.full((n, n, 3), 0.5), np.full((n, n), 3.0), camera(n)
+    batch = eqx.tree_at(lambda c: c.focus_distance, cam, jnp.asarray([2.0, 3.0]))
+    with pytest.raises(ValueError, match=r"defocus: camera.focus_distance has shape \(2,\): one "
+                       r"camera per call, not a batch \(.*jax.vmap"):
+        defocus(rgb, depth, batch)
+    with pytest.raises(ValueError, match=r"fit: camera.focus_distance has shape \(2,\).*"
+                       r"fit_focus_batch"):
+        dofjax.fit_focus(rgb, rgb, depth, batch)
+    # under jax.vmap each camera is one camera
+    out = jax.vmap(lambda d: defocus(rgb, depth, cam.replace(focus_distance=d), window=2))(
+        jnp.asarray([2.0, 3.0]))
+    assert out.shape == (2, n, n, 3)
