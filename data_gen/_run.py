@@ -537,6 +537,8 @@ def run(out_dir: str, count: int, seed: int, cfg: Mapping, *, workers: int = 1,
     cfg = validate_config(json.loads(_json_dumps(cfg)))
     start = time.perf_counter()
     _use_jax_cache(jax_cache_dir)
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise ValueError(f"out_dir: {out_dir} is a file, not a directory")
     os.makedirs(out_dir, exist_ok=True)
     _check_generator_file(out_dir, seed, cfg)
     _remove_stale_temporaries(out_dir)

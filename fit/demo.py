@@ -18,6 +18,7 @@ import numpy as np
 
 import dofjax
 from dofjax import _compile_cache as compile_cache
+from fit._errors import user_errors
 from fit._table import format_table, result_rows
 
 HERE = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -37,7 +38,11 @@ def main(argv=None) -> None:
     compile_cache.add_argument(p)
     a = p.parse_args(argv)
     compile_cache.use_in_script("demo", a.jax_cache)
+    with user_errors("demo"):  # a missing scene file, a bad size or value: named, no traceback
+        _run(a)
 
+
+def _run(a: argparse.Namespace) -> None:
     scene = dofjax.load_scene(a.scene)
     cam0 = dofjax.load_camera(a.scene)
     height = max(1, round(a.width * cam0.height / cam0.width))

@@ -90,3 +90,16 @@ def test_scripts_name_a_missing_or_unreadable_file(tmp_path):
     empty.write_text("\n")
     with pytest.raises(SystemExit, match="empty manifest"):
         sweep.main([str(empty), "--out", str(tmp_path)])
+
+
+def test_demo_and_data_gen_name_bad_paths(tmp_path, capsys):
+    from data_gen.__main__ import main as data_gen_main
+    from fit import demo
+
+    with pytest.raises(SystemExit, match=r"^demo: error: .*nope\.json: cannot read scene file"):
+        demo.main(["--scene", str(tmp_path / "nope.json")])
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    assert data_gen_main(["--out", str(a_file), "--count", "1", "--seed", "0",
+                          "--no-progress"]) != 0
+    assert "a_file is a file, not a directory" in capsys.readouterr().err
