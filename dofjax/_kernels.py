@@ -100,18 +100,24 @@ def _pyramid_extra_moment(scale: int) -> float:
 _CELL_SUBSAMPLES = 8
 
 
-def _sector(x, y, count: int, rotation: float) -> np.ndarray:
-    """Index k of the sector [rotation + 2 pi k / count, rotation + 2 pi (k + 1) / count)
-    (counter-clockwise from +x, y up) holding each point (x, y)."""
-    theta = np.mod(np.arctan2(y, x) - rotation, 2.0 * math.pi)
-    return np.minimum((theta / (2.0 * math.pi / count)).astype(np.int64), count - 1)
+def _sector_share(x, y, k: int, count: int, rotation: float) -> np.ndarray:
+    """Share (0, 1/2 or 1) of each point (x, y) (y up) in sector k, the angles
+    [rotation + 2 pi k / count, rotation + 2 pi (k + 1) / count) counter-clockwise from +x: a
+    point on a boundary between two sectors (e.g. on a diagonal of the symmetric sub-sample
+    grids below, for 8 sectors) counts half to each, so sectors alike in shape get alike in
+    mass and add up to the whole exactly."""
+    t = np.mod(np.arctan2(y, x) - rotation, 2.0 * math.pi) / (2.0 * math.pi / count)
+    nearest = np.round(t)
+    on = np.abs(t - nearest) < 1e-9
+    inside = np.mod(np.floor(t), count) == k
+    edge = (np.mod(nearest, count) == k) | (np.mod(nearest - 1, count) == k)
+    return np.where(on, 0.5 * edge, inside.astype(np.float64))
 
 
 def _cell_membership(n: int, cell: tuple[int, int], rotation: float) -> np.ndarray:
     """(n, n) share of each tap of an n x n kernel (rows = image rows, y down) inside sector
-    `cell` = (k, K) of the aperture: the angles [rotation + 2 pi k / K, rotation + 2 pi (k + 1) / K)
-    counter-clockwise from +x (y up), from 8 x 8 sub-samples per tap (so a tap on a boundary,
-    the centre tap too, is shared between the sectors it touches)."""
+    `cell` = (k, K) of the aperture (`_sector_share`), from 8 x 8 sub-samples per tap (so a tap
+    on a boundary, the centre tap too, is shared between the sectors it touches)."""
     k, count = cell
     h = n // 2
     o = (np.arange(_CELL_SUBSAMPLES) + 0.5) / _CELL_SUBSAMPLES - 0.5
@@ -119,7 +125,7 @@ def _cell_membership(n: int, cell: tuple[int, int], rotation: float) -> np.ndarr
     yy, xx = np.meshgrid(off, off, indexing="ij")
     x = xx[..., None, None] + o[None, None, None, :]
     y = -(yy[..., None, None] + o[None, None, :, None])
-    return (_sector(x, y, count, rotation) == k).mean(axis=(-1, -2))
+    return _sector_share(x, y, k, count, rotation).mean(axis=(-1, -2))
 
 
 def cell_kernel(rho: float, blades, rotation: float, ratio: float, cell: tuple[int, int] | None,
@@ -144,7 +150,8 @@ def cell_weights(count: int, blades, rotation: float, ratio: float) -> tuple[flo
     t = ((np.arange(n) + 0.5) / n * 2.0 - 1.0) * max(ratio, 1.0)
     x, y = np.meshgrid(t, t)
     inside = radial_function(x, y, blades, rotation, ratio) <= 1.0
-    area = np.bincount(_sector(x, y, count, rotation)[inside], minlength=count)
+    area = np.array([_sector_share(x[inside], y[inside], k, count, rotation).sum()
+                     for k in range(count)])
     return tuple(float(a) for a in area / float(area.sum()))
 
 
