@@ -75,7 +75,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike
 
 from ._autodiff import dense_jacobian, tracing_forward_only
-from ._camera import Camera, check_camera, check_margin, check_single
+from ._camera import Camera, _is_concrete, check_camera, check_margin, check_single
 from ._hidden import hidden_layer, hidden_layers
 from ._kernels import (
     MAX_WINDOW,
@@ -139,10 +139,6 @@ class _Config:
 
 # ---------------------------------------------------------------------------------------------
 # host-side validation
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
 
 
 def _check_finite(name: str, x) -> None:
@@ -606,17 +602,24 @@ def _as_array(x, dtype=None):
     return x.astype(dtype)
 
 
+def check_colour_dtype(label: str, dtype) -> None:
+    """ValueError `{label} must be a floating-point array of linear colour, ...` unless `dtype`
+    is floating: integer or bool colour is refused, since an 8-bit image is sRGB-coded and, read
+    as numbers 0..255, would be blurred (or fitted) as if it were linear."""
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(
+            f"{label} must be a floating-point array of linear colour, got dtype {dtype} (an 8- "
+            "or 16-bit image is sRGB-encoded: use dofjax.read_image or convert it to linear "
+            "float first)")
+
+
 def as_colour(name: str, what: str, x, dtype=None):
-    """`x` (None or linear colour) as a floating-point array (`_as_array`); integer or bool colour
-    is refused: an 8-bit image is sRGB-coded, and read as numbers 0..255 it would be blurred as
-    if it were linear."""
+    """`x` (None or linear colour) as a floating-point array (`_as_array`), integer or bool
+    colour refused (`check_colour_dtype`)."""
     if x is None:
         return None
     x = jnp.asarray(x)
-    if not jnp.issubdtype(x.dtype, jnp.floating):
-        raise ValueError(
-            f"{name}: {what} must be a floating-point array of linear colour, got dtype "
-            f"{x.dtype} (8-bit images are sRGB-coded: decode one with dofjax.read_image)")
+    check_colour_dtype(f"{name}: {what}", x.dtype)
     return _as_array(x, dtype)
 
 

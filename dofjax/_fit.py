@@ -71,7 +71,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._autodiff import value_and_jacobian
 from ._camera import Camera, check_camera, check_single, coc_unchecked
-from ._defocus import as_mirror, supersampling
+from ._defocus import as_mirror, check_colour_dtype, supersampling
 from ._kernels import bucket_window
 from ._linalg import ThinQR, unit_column_svd
 from ._numerics import box_pool as _pool, inverse_depth, safe_div
@@ -1109,11 +1109,14 @@ def _real(value) -> float:
     return float(value) if ok else math.nan
 
 
-def _check_colour(name: str, a: np.ndarray) -> None:
-    if a.dtype.kind in "biu":  # (bool, signed or unsigned integers)
-        raise ValueError(f"{name}: must be a floating-point array of linear colour, got dtype "
-                         f"{a.dtype} (an 8- or 16-bit image is sRGB-encoded: use "
-                         "dofjax.read_image or convert it to linear float first)")
+def check_windows(window, max_window) -> None:
+    """`window` (None: automatic) and `max_window` (px) of the fit's model: finite and > 0 (NaN,
+    or not a real number, fails); also `fisher_information`'s, which builds the same model."""
+    if window is not None and not 0 < _real(window) < math.inf:
+        raise ValueError(f"window: must be finite and > 0 px (or None: automatic), got "
+                         f"{window!r}")
+    if not 0 < _real(max_window) < math.inf:
+        raise ValueError(f"max_window: must be finite and > 0 px, got {max_window!r}")
 
 
 def _check_finite(name: str, a: np.ndarray) -> None:
@@ -1137,7 +1140,7 @@ def _check_images(rgb, depth, camera: Camera) -> tuple[np.ndarray, np.ndarray, i
     rgb_a = np.asarray(rgb)
     if rgb_a.shape != hw + (3,):
         raise ValueError(f"rgb: expected shape {hw + (3,)} to match depth {hw}, got {rgb_a.shape}")
-    _check_colour("rgb", rgb_a)
+    check_colour_dtype("rgb:", rgb_a.dtype)
     s = supersampling(hw, camera)
     if hw != (s * camera.height, s * camera.width):
         raise ValueError(
@@ -1201,7 +1204,7 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
     if batch and not len(tgt):
         raise ValueError(f"targets: the batch is empty (shape {tgt.shape}): need at least one "
                          "target image")
-    _check_colour("target", tgt)
+    check_colour_dtype("target:", tgt.dtype)
     _check_finite("target", tgt)
     weight = _depth_weight(depth_a, mask, hw)
     finite = np.isfinite(depth_a)
@@ -1497,12 +1500,8 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         int(counts[k][0]) for k in ("starts", "max_steps", "start_steps", "screen_steps",
                                     "scan_points", "robust_rounds"))
     coarse_size = None if coarse_size is None else int(coarse_size)
+    check_windows(window, max_window)
     # (NaN, or not a real number: fails every check)
-    if window is not None and not 0 < _real(window) < math.inf:
-        raise ValueError(f"window: must be finite and > 0 px (or None: automatic), got "
-                         f"{window!r}")
-    if not 0 < _real(max_window) < math.inf:
-        raise ValueError(f"max_window: must be finite and > 0 px, got {max_window!r}")
     if not _real(max_condition) > 1:  # (a normalised condition number is >= 1; inf: no limit)
         raise ValueError(f"max_condition: must be > 1, got {max_condition!r}")
     if not 0 <= _real(ambiguity_threshold) < math.inf:

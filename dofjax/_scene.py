@@ -24,13 +24,14 @@ import warnings
 from collections.abc import Mapping
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-# `max_bounces` a scene file gets when a material is a mirror (`_scenefile.DEFAULT_MIRROR_BOUNCES`).
-_FILE_MIRROR_BOUNCES = 2
+from ._camera import _is_concrete
+
+# `max_bounces` a scene file gets when a material is a mirror (`_scenefile.scene_from_dict`).
+DEFAULT_MIRROR_BOUNCES = 2
 
 
 class _DefaultBounces(int):
@@ -42,10 +43,6 @@ class _DefaultBounces(int):
 
 
 _NO_BOUNCES = _DefaultBounces(0)
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
 
 
 def _as_array(name: str, x, dtype) -> Array:
@@ -472,7 +469,7 @@ class Scene(eqx.Module):
                     f"Scene: materials {mirrors.tolist()} have mirror > 0, but max_bounces is "
                     f"its default 0, so no reflected rays are traced and the mirror part renders "
                     f"black; pass max_bounces >= 1 (scene files default to "
-                    f"{_FILE_MIRROR_BOUNCES} when a material is a mirror), or max_bounces=0 to "
+                    f"{DEFAULT_MIRROR_BOUNCES} when a material is a mirror), or max_bounces=0 to "
                     f"mean it",
                     UserWarning,
                     stacklevel=_WARN_STACKLEVEL,

@@ -27,6 +27,7 @@ import numpy as np
 
 from ._camera import Camera
 from ._scene import (
+    DEFAULT_MIRROR_BOUNCES,
     Boxes,
     DirectionalLights,
     Materials,
@@ -52,7 +53,6 @@ __all__ = [
 ]
 
 DEFAULT_TEXTURE_SIZE = 256
-DEFAULT_MIRROR_BOUNCES = 2
 FORMAT_VERSION = 1
 # A direction whose length is within this of 1 is kept bit-for-bit (so load(save(scene)) is exact);
 # anything else is divided by its length.

@@ -29,14 +29,20 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from ._camera import Camera, check_camera
-from ._fit import PARAMS, DefocusModel, _check_images, _depth_weight, _reach, _validate
+from ._fit import (
+    PARAMS,
+    DefocusModel,
+    _check_images,
+    _depth_weight,
+    _reach,
+    _validate,
+    check_windows,
+)
 
 
 def _default_model(rgb, depth, camera, mask, bounds, window, max_window, defocus_options):
     """The model `fit_focus` would build for these arguments (same window, same options)."""
-    for name, value in (("window", window), ("max_window", max_window)):
-        if value is not None and not (math.isfinite(float(value)) and float(value) > 0):
-            raise ValueError(f"{name}: must be finite and > 0 px, got {value!r}")
+    check_windows(window, max_window)
     if window is None:
         # fit_focus's own validation and default bounds (the sharp rgb stands in for the target;
         # the caller has checked it already, so no message names the wrong argument).
