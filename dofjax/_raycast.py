@@ -44,7 +44,7 @@ from ._intersect import (
 from ._numerics import safe_div, safe_sqrt
 from ._rgbd import RGBD, Layers, Mirror
 from ._sampling import pixel_positions, pixel_sampler
-from ._scene import Scene
+from ._scene import Scene, check_scene
 
 # Ray x primitive (x light) pairs evaluated at once per chunk; bounds the working set to a few
 # tens of MB per temporary whatever the image size or primitive count.
@@ -823,8 +823,7 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
         isinstance(layers, bool) or not isinstance(layers, int | np.integer) or layers < 1
     ):
         raise ValueError(f"render: layers must be None or an integer >= 1, got {layers!r}")
-    if not isinstance(scene, Scene):
-        raise TypeError(f"render: scene must be a dofjax.Scene, got {type(scene).__name__}")
+    check_scene("render", scene)
     check_camera(camera, "render")
     closed = None if layers is None else _closed_triangles(scene)
     return _render(scene, camera, int(spp), None if layers is None else int(layers), closed)

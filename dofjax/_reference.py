@@ -33,7 +33,7 @@ from ._sampling import (
     pixel_sampler,
     unit_square_samples,
 )
-from ._scene import Scene
+from ._scene import Scene, check_scene
 from ._types import Image
 
 # Rays traced per jitted step when `chunk` is not given: large enough to amortise the loop overhead,
@@ -77,12 +77,7 @@ def _validate(spp, shape, blades, rotation, ratio, chunk, sampler, scene, camera
         isinstance(chunk, bool) or not isinstance(chunk, int | np.integer) or chunk < 1
     ):
         raise ValueError(f"render_reference: chunk must be an integer >= 1 or None, got {chunk!r}")
-    if not isinstance(scene, Scene):
-        raise TypeError(
-            f"render_reference: scene must be a dofjax.Scene, got {type(scene).__name__} (build "
-            "one from a scene dictionary with dofjax.scene_from_dict, or from a file with "
-            "dofjax.load_scene)"
-        )
+    check_scene("render_reference", scene)
     check_camera(camera, "render_reference")
     if not isinstance(key, jax.Array) or not (
         jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key) or key.dtype == jnp.uint32

@@ -20,6 +20,7 @@ operations (`jax.tree.map`, `eqx.tree_at`) rebuild modules without running these
 
 from __future__ import annotations
 
+import os
 import warnings
 from collections.abc import Mapping
 
@@ -508,3 +509,15 @@ class Scene(eqx.Module):
     @property
     def has_lights(self) -> bool:
         return self.point_lights is not None or self.directional_lights is not None
+
+
+def check_scene(where: str, scene) -> None:
+    """TypeError `{where}: scene must be a dofjax.Scene, got ...` (with where to get one, for a
+    scene dictionary or a file name) unless `scene` is a `Scene`."""
+    if isinstance(scene, Scene):
+        return
+    hint = ""
+    if isinstance(scene, Mapping | str | os.PathLike):
+        hint = (" (build one from a scene dictionary with dofjax.scene_from_dict, or from a file "
+                "with dofjax.load_scene)")
+    raise TypeError(f"{where}: scene must be a dofjax.Scene, got {type(scene).__name__}{hint}")

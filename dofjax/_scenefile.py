@@ -37,6 +37,7 @@ from ._scene import (
     Scene,
     Spheres,
     Triangles,
+    check_scene,
 )
 from ._textures import load_texture, write_texture_exr
 
@@ -947,8 +948,7 @@ def scene_to_dict(
     Triangles are written as inline meshes, one per run of consecutive triangles that share a
     material (a lone triangle as a "triangle" object), preserving their order.
     """
-    if not isinstance(scene, Scene):
-        raise TypeError(f"scene_to_dict: scene must be a dofjax.Scene, got {type(scene).__name__}")
+    check_scene("scene_to_dict", scene)
     m = scene.materials
     count = m.count
     names = (
@@ -1150,13 +1150,7 @@ def save_scene(
     Raises:
         TypeError: scene is not a `Scene`.
     """
-    if not isinstance(scene, Scene):
-        hint = ""
-        if isinstance(scene, Mapping):
-            hint = " (for a scene dictionary, build the Scene with dofjax.scene_from_dict first)"
-        raise TypeError(
-            f"save_scene: scene must be a dofjax.Scene, got {type(scene).__name__}{hint}"
-        )
+    check_scene("save_scene", scene)
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     stem = os.path.splitext(os.path.basename(path))[0]
