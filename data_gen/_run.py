@@ -624,8 +624,27 @@ def collect(out_dir: str, count: int) -> list[dict]:
 
 def read_manifest(out_dir: str) -> list[dict]:
     """The records of a data set, in index order."""
-    with open(os.path.join(out_dir, "manifest.jsonl")) as f:
-        return [json.loads(line) for line in f if line.strip()]
+    return read_manifest_file(os.path.join(out_dir, "manifest.jsonl"))
+
+
+def read_manifest_file(path: str) -> list[dict]:
+    """The records of a manifest file (JSON lines), each checked for the keys a record has;
+    ValueError naming the file and line otherwise (e.g. a sample's JSON passed by mistake)."""
+    with open(path) as f:
+        lines = [(n, line) for n, line in enumerate(f, 1) if line.strip()]
+    records = []
+    for n, line in lines:
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError as e:
+            raise ValueError(f"{path}, line {n}: not a data_gen manifest line ({e})") from None
+        keys = ("index", "files", "truth", "kind", "noise")
+        missing = [k for k in keys if not isinstance(rec, dict) or k not in rec]
+        if missing:
+            raise ValueError(f"{path}, line {n}: not a data_gen manifest record (no "
+                             f"{', '.join(missing)}); pass OUT_DIR/manifest.jsonl")
+        records.append(rec)
+    return records
 
 
 # ------------------------------------------------------------------------------------------------

@@ -24,6 +24,7 @@ from collections import defaultdict
 import numpy as np
 
 import dofjax
+from data_gen._run import read_manifest_file
 from dofjax import _compile_cache as compile_cache
 
 from ._errors import user_errors
@@ -225,22 +226,8 @@ def plots(rows: list[dict], out: str) -> None:
 
 
 def read_manifest(path: str) -> list[dict]:
-    """The records of a data_gen manifest (JSON lines), each checked for what a fit reads;
-    ValueError naming the file and line otherwise (e.g. a sample's JSON passed by mistake)."""
-    with open(path) as f:
-        lines = [(n, line) for n, line in enumerate(f, 1) if line.strip()]
-    records = []
-    for n, line in lines:
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError as e:
-            raise ValueError(f"{path}, line {n}: not a data_gen manifest line ({e})") from None
-        keys = ("index", "files", "truth", "kind", "noise")
-        missing = [k for k in keys if not isinstance(rec, dict) or k not in rec]
-        if missing:
-            raise ValueError(f"{path}, line {n}: not a data_gen manifest record (no "
-                             f"{', '.join(missing)}); pass OUT_DIR/manifest.jsonl")
-        records.append(rec)
+    """The records of a data_gen manifest (`data_gen`'s checked reader), at least one."""
+    records = read_manifest_file(path)
     if not records:
         raise ValueError(f"{path}: empty manifest, no samples to fit")
     return records
