@@ -1899,6 +1899,17 @@ def fit_focus_scene(target: ArrayLike, scene, camera: Camera, *, spp: int = 1,
     from ._raycast import render
 
     supersample = _integer("supersample", supersample, 1)
+    # what can be checked before the render (which takes a while) is checked first: the
+    # keyword arguments fit_focus takes, the camera, the target's size against it
+    try:
+        inspect.signature(fit_focus).bind(target, None, None, camera, **kwargs)
+    except TypeError as e:
+        raise TypeError(f"fit_focus_scene: {e} (its keyword arguments are fit_focus's)") from None
+    check_camera(camera, "fit_focus_scene")
+    shape = np.shape(target)
+    if len(shape) >= 2 and tuple(shape[:2]) != (int(camera.height), int(camera.width)):
+        raise ValueError(f"fit_focus_scene: target is {shape[0]} x {shape[1]} px (H x W), the "
+                         f"camera renders {int(camera.height)} x {int(camera.width)}")
     rgbd = render(scene, camera.scaled(supersample), spp=spp, layers=layers)
     return fit_focus(target, rgbd, camera, **kwargs)
 

@@ -176,6 +176,19 @@ def test_fit_focus_scene_names_supersample():
             fit_focus_scene(TARGET, None, CAM, supersample=bad)
 
 
+def test_fit_focus_scene_checks_before_rendering():
+    # a misspelt keyword, a target of another size, a camera that is not one: named before the
+    # render (the scene is None, so reaching the render would fail differently)
+    with pytest.raises(TypeError, match=r"fit_focus_scene: .*'solvr'.*keyword arguments are "
+                                        r"fit_focus's"):
+        fit_focus_scene(TARGET, None, CAM, solvr="lm")
+    with pytest.raises(ValueError, match=r"fit_focus_scene: target is 6 x 16 px \(H x W\), "
+                                         r"the camera renders 12 x 16"):
+        fit_focus_scene(TARGET[:6], None, CAM)
+    with pytest.raises(TypeError, match=r"fit_focus_scene: camera must be a dofjax.Camera"):
+        fit_focus_scene(TARGET, None, {"width": 16})
+
+
 def test_defocus_model_names_a_bad_window_or_shape_when_built():
     # not at its first call, deep inside a fit
     for kw, match in ((dict(window=math.nan), r"DefocusModel: window must be finite and > 0 px"),
