@@ -2,7 +2,9 @@
 
     python -m fit.sweep OUT_DIR/manifest.jsonl [--limit N] [--window 16] [--seed 0] [--out DIR]
 
-Per sample: read the sharp RGB-D and the target EXRs, start from a random guess inside the bounds
+Per sample: read the sharp RGB-D (`dofjax.read_rgbd`: with the mirror layer and peeled layers
+data_gen rendered the target from, so the fit's model is the target's) and the target EXRs,
+start from a random guess inside the bounds
 (u = 1/d uniform, A log-uniform; the bounds do not use the truth: d in (z_min / 2, 4 z_max), A up
 to a `--coc-reach` (32) px CoC, see `guess_and_bounds`), fit with `dofjax.fit_focus`. Writes
 DIR/sweep.jsonl (one line per sample),
@@ -81,6 +83,21 @@ def true_camera(truth: dict, width: int, height: int) -> dofjax.Camera:
                          up=truth.get("up", (0, 1, 0)))
 
 
+def _rgbd_model(sharp: dofjax.RGBD, window):
+    """The model `fit_focus` fits to `sharp` (its mirror and peeled layers included), as a
+    `model(rgb, depth, camera)` for `dofjax.cramer_rao_bound`; None (the default model, the
+    same for a plain RGB-D) when there is nothing beyond colour and depth or no fixed window."""
+    extras = (sharp.reflection, sharp.layers, sharp.mirror)
+    if window is None or all(x is None for x in extras):
+        return None
+
+    def model(rgb, depth, camera):
+        return dofjax.defocus(dofjax.RGBD(rgb, depth, *extras[:1], sharp.reflection_depth,
+                                          sharp.layers, sharp.mirror), camera, window=window)
+
+    return model
+
+
 def fit_record(rec: dict, root: str, rng: np.random.Generator, window, starts: int,
                coc_reach: float = 32.0, crb: bool = True) -> dict:
     """Fit one data_gen record from a random guess; errors, flags and (Gaussian noise) the CRB.
@@ -91,15 +108,18 @@ def fit_record(rec: dict, root: str, rng: np.random.Generator, window, starts: i
     (e.g. single_plane).
     """
     truth = rec["truth"]
-    rgb, depth, _ = dofjax.read_exr(os.path.join(root, rec["files"]["sharp"]))
+    # the whole sharp RGBD: its mirror layer and peeled layers made the target (data_gen renders
+    # `config.target.layers`), so they enter the fit's model too (read_exr's colour and depth
+    # alone would fit a single-layer model to them: biased at every occlusion edge and mirror)
+    sharp, _ = dofjax.read_rgbd(os.path.join(root, rec["files"]["sharp"]))
+    rgb, depth = np.asarray(sharp.rgb), np.asarray(sharp.depth)
     target, _, _ = dofjax.read_exr(os.path.join(root, rec["files"]["target"]))
     h, w = depth.shape
     d0, a0, bounds = guess_and_bounds(rng, depth, truth["fov"], coc_reach)
     true = true_camera(truth, w, h)
     camera = true.replace(focus_distance=d0, aperture_radius=a0)
     t = time.perf_counter()
-    res = dofjax.fit_focus(target, rgb, depth, camera, starts=starts, window=window,
-                           bounds=bounds)
+    res = dofjax.fit_focus(target, sharp, camera, starts=starts, window=window, bounds=bounds)
     out = {"index": rec["index"], "kind": rec["kind"], "noise": _noise_level(rec["noise"]),
            "sigma": _sigma(rec["noise"]), "method": rec.get("method", "defocus"),
            "identifiable_kind": bool(rec.get("identifiable", True)),
@@ -109,7 +129,8 @@ def fit_record(rec: dict, root: str, rng: np.random.Generator, window, starts: i
     bound = np.full(2, np.nan)
     if crb and math.isfinite(out["sigma"]):
         try:
-            bound = dofjax.cramer_rao_bound(rgb, depth, true, out["sigma"], window=window)
+            bound = dofjax.cramer_rao_bound(rgb, depth, true, out["sigma"], window=window,
+                                            model=_rgbd_model(sharp, window))
         except ValueError as e:  # singular: not identifiable, the bound is infinite
             if "singular" not in str(e):
                 raise
