@@ -4,7 +4,8 @@
 
 Per sample: read the sharp RGB-D (`dofjax.read_rgbd`: with the mirror layer and peeled layers
 data_gen rendered the target from, so the fit's model is the target's) and the target EXRs,
-start from a random guess inside the bounds
+leave out the pixels its noise model clipped at 1 (`unclipped`: 8-bit sRGB, a saturating
+sensor), start from a random guess inside the bounds
 (u = 1/d uniform, A log-uniform; the bounds do not use the truth: d in (z_min / 2, 4 z_max), A up
 to a `--coc-reach` (32) px CoC, see `guess_and_bounds`), fit with `dofjax.fit_focus`. Writes
 DIR/sweep.jsonl (one line per sample),
@@ -83,6 +84,25 @@ def true_camera(truth: dict, width: int, height: int) -> dofjax.Camera:
                          up=truth.get("up", (0, 1, 0)))
 
 
+def unclipped(target: np.ndarray, noise: dict) -> np.ndarray | None:
+    """(H, W) bool: the pixels the record's noise model did not clip (None: it clips none).
+
+    8-bit sRGB (`srgb8`, or `quantize`) clips every channel to [0, 1] and a saturating sensor
+    (`saturate`) clips the electron count at the full well, so a blurred HDR highlight reads 1
+    where the model, which does not clip, predicts more: fitted, those pixels pull the focus and
+    aperture far off (a highlights sample at 48 x 36: d -76 %, A +682 %). They carry only "at
+    least 1", so they are left out of the fit (`fit_focus`'s mask); a pixel is clipped where
+    any channel reaches 1 (the read noise added after saturation: within 4 sigma of 1)."""
+    model = noise.get("model", "none")
+    if model == "srgb8" or noise.get("quantize", False):
+        top = 1.0
+    elif model == "poisson_gaussian" and noise.get("saturate", False):
+        top = 1.0 - 4.0 * float(noise.get("read_noise", 0.0)) / float(noise["full_well"])
+    else:
+        return None
+    return np.all(np.asarray(target) < top, axis=-1)
+
+
 def _rgbd_model(sharp: dofjax.RGBD, window):
     """The model `fit_focus` fits to `sharp` (its mirror and peeled layers included), as a
     `model(rgb, depth, camera)` for `dofjax.cramer_rao_bound`; None (the default model, the
@@ -119,7 +139,9 @@ def fit_record(rec: dict, root: str, rng: np.random.Generator, window, starts: i
     true = true_camera(truth, w, h)
     camera = true.replace(focus_distance=d0, aperture_radius=a0)
     t = time.perf_counter()
-    res = dofjax.fit_focus(target, sharp, camera, starts=starts, window=window, bounds=bounds)
+    mask = unclipped(target, rec["noise"])
+    res = dofjax.fit_focus(target, sharp, camera, starts=starts, window=window, bounds=bounds,
+                           mask=mask)
     out = {"index": rec["index"], "kind": rec["kind"], "noise": _noise_level(rec["noise"]),
            "sigma": _sigma(rec["noise"]), "method": rec.get("method", "defocus"),
            "identifiable_kind": bool(rec.get("identifiable", True)),
@@ -130,7 +152,7 @@ def fit_record(rec: dict, root: str, rng: np.random.Generator, window, starts: i
     if crb and math.isfinite(out["sigma"]):
         try:
             bound = dofjax.cramer_rao_bound(rgb, depth, true, out["sigma"], window=window,
-                                            model=_rgbd_model(sharp, window))
+                                            model=_rgbd_model(sharp, window), mask=mask)
         except ValueError as e:  # singular: not identifiable, the bound is infinite
             if "singular" not in str(e):
                 raise

@@ -6,7 +6,7 @@ import pytest
 import dofjax
 from data_gen import load_config
 from data_gen._run import read_manifest, run
-from fit.sweep import fit_record, true_camera
+from fit.sweep import fit_record, true_camera, unclipped
 
 # one noise-free occluders sample: data_gen makes its target from the sharp render's peeled
 # layers (config.target.layers, 2 by default), which write_rgbd stores in the sharp file
@@ -36,3 +36,22 @@ def test_sweep_fits_the_peeled_layers_the_target_was_made_with(tmp_path):
     row = fit_record(rec, out, np.random.default_rng(0), 16.0, 4, crb=False)
     assert abs(row["rel_err_focus_distance"]) < 1e-3, row
     assert abs(row["rel_err_aperture_radius"]) < 1e-3, row
+
+
+def test_clipped_pixels_are_left_out_of_the_fit():
+    # the noise models that clip at 1 (8-bit sRGB, quantize, a saturating sensor) mark the
+    # pixels where any channel reached it; the others clip nothing
+    target = np.full((2, 3, 3), 0.5)
+    target[0, 0] = (1.0, 0.2, 0.2)  # one channel at the 8-bit maximum
+    target[1, 2] = 0.9995  # within 4 read-noise sigmas of a full well
+    expect = np.ones((2, 3), bool)
+    expect[0, 0] = False
+    for noise in ({"model": "srgb8"}, {"model": "gaussian", "sigma": 0.01, "quantize": True}):
+        np.testing.assert_array_equal(unclipped(target, noise), expect)
+    expect[1, 2] = False
+    saturating = {"model": "poisson_gaussian", "full_well": 1000.0, "read_noise": 2.0,
+                  "saturate": True}
+    np.testing.assert_array_equal(unclipped(target, saturating), expect)
+    for noise in ({"model": "none"}, {"model": "gaussian", "sigma": 0.01},
+                  {**saturating, "saturate": False}):
+        assert unclipped(target, noise) is None
