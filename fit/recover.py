@@ -27,6 +27,7 @@ import numpy as np
 import dofjax
 from dofjax import _compile_cache as compile_cache
 from dofjax._fit import LOSSES, SOLVERS
+from fit._clipped import clipped_mask
 from fit._errors import user_errors
 from fit._table import format_table, result_rows
 
@@ -69,6 +70,10 @@ def main(argv=None) -> None:
                    help="huber / cauchy: robust to clipped or outlying pixels")
     p.add_argument("--starts", type=int, default=8,
                    help="multi-start points in inverse focus distance")
+    p.add_argument("--clipped-at", type=float, metavar="V",
+                   help="leave out pixels where any channel of the target reaches V (clipped "
+                   "highlights: 1 for an 8-bit image); default: from a data_gen target's noise "
+                   "model, else keep every pixel")
     p.add_argument("--window", type=float, help="defocus window (px)")
     p.add_argument("--method", default="sliced", choices=("sliced", "pyramid", "lens"),
                    help="the fit's defocus model (lens: polishes what a sliced search found)")
@@ -128,9 +133,14 @@ def _run(a: argparse.Namespace) -> None:
     options = ({"method": a.method} | ({"samples": a.samples} if a.samples is not None else {})
                | ({"subapertures": a.subapertures} if a.subapertures != 1 else {}))
     # bad input (shapes, NaN, bounds, options) raises ValueError before any solver runs
+    mask = clipped_mask(target, a.clipped_at, tmeta.get("noise"))
+    if mask is not None:
+        at = a.clipped_at if a.clipped_at is not None else "its noise model's maximum"
+        print(f"left out {int(mask.size - mask.sum())} of {mask.size} target pixels clipped at "
+              f"{at}")
     result = dofjax.fit_focus(target, sharp, camera, bounds=bounds or None, solver=a.solver,
                               loss=a.loss, starts=a.starts, window=a.window,
-                              defocus_options=options)
+                              defocus_options=options, mask=mask)
     truth = {k: tmeta.get(k) for k in ("focus_distance", "aperture_radius")}
     if tmeta.get("role") == "sharp":
         truth = {}

@@ -30,6 +30,7 @@ import dofjax
 from data_gen._run import read_manifest_file
 from dofjax import _compile_cache as compile_cache
 
+from ._clipped import unclipped
 from ._errors import user_errors
 from ._table import format_table
 
@@ -82,25 +83,6 @@ def true_camera(truth: dict, width: int, height: int) -> dofjax.Camera:
                          aperture_radius=truth["aperture_radius"],
                          eye=truth.get("eye", (0, 0, 0)), target=truth.get("target", (0, 0, 1)),
                          up=truth.get("up", (0, 1, 0)))
-
-
-def unclipped(target: np.ndarray, noise: dict) -> np.ndarray | None:
-    """(H, W) bool: the pixels the record's noise model did not clip (None: it clips none).
-
-    8-bit sRGB (`srgb8`, or `quantize`) clips every channel to [0, 1] and a saturating sensor
-    (`saturate`) clips the electron count at the full well, so a blurred HDR highlight reads 1
-    where the model, which does not clip, predicts more: fitted, those pixels pull the focus and
-    aperture far off (a highlights sample at 48 x 36: d -76 %, A +682 %). They carry only "at
-    least 1", so they are left out of the fit (`fit_focus`'s mask); a pixel is clipped where
-    any channel reaches 1 (the read noise added after saturation: within 4 sigma of 1)."""
-    model = noise.get("model", "none")
-    if model == "srgb8" or noise.get("quantize", False):
-        top = 1.0
-    elif model == "poisson_gaussian" and noise.get("saturate", False):
-        top = 1.0 - 4.0 * float(noise.get("read_noise", 0.0)) / float(noise["full_well"])
-    else:
-        return None
-    return np.all(np.asarray(target) < top, axis=-1)
 
 
 def _rgbd_model(sharp: dofjax.RGBD, window):

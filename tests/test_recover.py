@@ -29,9 +29,12 @@ def test_recover_from_a_supersampled_layered_scene(tmp_path, capsys):
     prefix = str(tmp_path / "fit")
     recover.main([path, "--scene", SCENE, "--layers", "2", "--supersample", "2", "--focus", "7",
                   "--aperture", "0.05", "--focus-bounds", "1", "50", "--aperture-bounds", "0.01",
-                  "0.3", "--starts", "4", "--out", prefix])
+                  "0.3", "--starts", "4", "--clipped-at", "0.55", "--out", prefix])
     out = capsys.readouterr().out
     assert "focus_distance" in out and "message: ok" in out
+    clipped = int(np.any(target >= 0.55, axis=-1).sum())
+    assert 0 < clipped < target.shape[0] * target.shape[1] // 2  # (the fit survives them)
+    assert f"left out {clipped} of {24 * 32} target pixels clipped at 0.55" in out
     with open(prefix + ".json") as f:
         result = json.load(f)["result"]
     assert result["focus_distance"] == pytest.approx(4.0, rel=1e-3)

@@ -6,7 +6,8 @@ import pytest
 import dofjax
 from data_gen import load_config
 from data_gen._run import read_manifest, run
-from fit.sweep import fit_record, true_camera, unclipped
+from fit._clipped import clipped_mask, unclipped
+from fit.sweep import fit_record, true_camera
 
 # one noise-free occluders sample: data_gen makes its target from the sharp render's peeled
 # layers (config.target.layers, 2 by default), which write_rgbd stores in the sharp file
@@ -55,3 +56,8 @@ def test_clipped_pixels_are_left_out_of_the_fit():
     for noise in ({"model": "none"}, {"model": "gaussian", "sigma": 0.01},
                   {**saturating, "saturate": False}):
         assert unclipped(target, noise) is None
+    # fit.recover: an explicit level wins, else a data_gen target's noise metadata, else none
+    np.testing.assert_array_equal(clipped_mask(target, 0.6, {"model": "none"}),
+                                  np.all(target < 0.6, axis=-1))
+    np.testing.assert_array_equal(clipped_mask(target, None, saturating), expect)
+    assert clipped_mask(target, None, None) is None
