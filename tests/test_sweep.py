@@ -61,3 +61,21 @@ def test_clipped_pixels_are_left_out_of_the_fit():
                                   np.all(target < 0.6, axis=-1))
     np.testing.assert_array_equal(clipped_mask(target, None, saturating), expect)
     assert clipped_mask(target, None, None) is None
+
+
+def test_default_aperture_bound_holds_a_data_gen_truth():
+    # data_gen sample 47 of seed 11 at 256 x 256: depths 1.08-7.52, focus 4.05, largest CoC
+    # 14.95 px (config max 16). The bound's reach is the CoC at the focus that blurs the scene
+    # most (half the nearest depth), 2.5x the truth's here: 32 px (the old default) put its
+    # aperture out of bounds and the fit ended at the bound (d +643 %); 8 windows hold it.
+    from fit.sweep import guess_and_bounds, reach
+
+    depth = np.linspace(1.08, 7.52, 64 * 256).reshape(64, 256)
+    fov, d = 50.0, 4.05
+    k = 256 / (2.0 * np.tan(np.radians(fov) / 2.0))
+    true_a = 14.95 / (k * max(abs(1 / d - 1 / 1.08), abs(1 / d - 1 / 7.52)))
+    rng = np.random.default_rng(0)
+    assert guess_and_bounds(rng, depth, fov, 32.0)[2]["aperture_radius"][1] < true_a
+    assert reach(None, 16.0) == 128.0 and reach(40.0, 16.0) == 40.0
+    lo, hi = guess_and_bounds(rng, depth, fov, reach(None, 16.0))[2]["aperture_radius"]
+    assert lo < true_a < hi
