@@ -42,6 +42,18 @@ def _noise_level(noise: dict) -> str:
     return model
 
 
+def _noise_group(row: dict) -> str:
+    """The table's noise column: Gaussian sigmas binned on a 1-2-5 grid ("gaussian 0.002-0.005"),
+    so a data set of continuous sigmas gets a few rows rather than one per sample."""
+    sigma = row.get("sigma", float("nan"))
+    if not (isinstance(sigma, float) and math.isfinite(sigma) and sigma > 0):
+        return row["noise"]
+    decade = 10.0 ** math.floor(math.log10(sigma))
+    edges = [decade * m for m in (1.0, 2.0, 5.0, 10.0)]
+    i = max(j for j in range(3) if sigma >= edges[j] * (1 - 1e-12))
+    return f"gaussian {edges[i]:.3g}-{edges[i + 1]:.3g}"
+
+
 def _sigma(noise: dict) -> float:
     return float(noise.get("sigma", 0.0)) if noise.get("model") == "gaussian" else float("nan")
 
@@ -168,7 +180,8 @@ def _median(x) -> str:
 
 
 def summarise(rows: list[dict]) -> str:
-    """Markdown table of relative errors by scene kind, noise level and target method.
+    """Markdown table of relative errors by scene kind, noise level (Gaussian sigmas binned,
+    `_noise_group`) and target method, and a last row of every sample of the identifiable kinds.
 
     Columns per parameter: median and 98th percentile of |rel err|, the median of the fit's own
     standard error s^2 (J^T J)^-1, of its tile-robust one (`FitResult.*_se_tiles`: larger where
@@ -178,14 +191,18 @@ def summarise(rows: list[dict]) -> str:
     """
     groups = defaultdict(list)
     for r in rows:
-        groups[(r["kind"], r["noise"], r["method"])].append(r)
+        groups[(r["kind"], _noise_group(r), r["method"])].append(r)
     header = ["kind", "noise", "method", "n"]
     for p in ("d", "A"):
         header += [f"{p}: median |err|", f"{p}: p98", f"{p}: median SE",
                    f"{p}: median SE (tiles)", f"{p}: median CRB", f"{p}: rms err / CRB"]
     header += ["identifiable", "ambiguous", "truth in bounds"]
     table = []
-    for (kind, noise, method), rs in sorted(groups.items()):
+    ident = [r for r in rows if r.get("identifiable_kind", True)]
+    items = sorted(groups.items())
+    if len(items) > 1 and ident:  # and every sample of the identifiable kinds together
+        items.append((("**identifiable kinds**", "all", "all"), ident))
+    for (kind, noise, method), rs in items:
         cells = [kind, noise, method, str(len(rs))]
         for name in ("focus_distance", "aperture_radius"):
             e = np.abs([r[f"rel_err_{name}"] for r in rs])

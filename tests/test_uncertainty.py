@@ -215,10 +215,17 @@ def test_sweep_bounds_and_summary():
     table = summarise([row("planes", 2e-3, 1e-3), row("planes", -2e-3, 1e-3),
                        row("single_plane", 0.5, np.inf)])
     lines = table.splitlines()
-    assert len(lines) == 4  # header, rule, one row per (kind, noise, method)
+    # header, rule, one row per (kind, noise, method), every sample of the identifiable kinds
+    assert len(lines) == 5
     planes = next(line for line in lines if "| planes" in line)
     cells = [c.strip() for c in planes.split("|")]
     assert cells.count("2.00") == 2  # rms err / CRB for d and A
     single = next(line for line in lines if "single_plane" in line)
     assert "inf" not in single  # an infinite bound is left out, not averaged
+    assert lines[-1].startswith("| **identifiable kinds** | all ") and "| 3 |" in lines[-1]
+    # continuous sigmas share a row per 1-2-5 bin
+    rows = [dict(row("planes", 1e-3, 1e-3), noise=f"gaussian {s:.3g}", sigma=s)
+            for s in (0.0021, 0.0049, 0.005, 0.0131)]
+    noise = [line.split("|")[2].strip() for line in summarise(rows).splitlines()[2:]]
+    assert noise == ["gaussian 0.002-0.005", "gaussian 0.005-0.01", "gaussian 0.01-0.02", "all"]
     assert format_table([["a|b"]], header=("x",)).splitlines()[2] == "| a\\|b |"
