@@ -27,6 +27,7 @@ import numpy as np
 import dofjax
 from dofjax import _compile_cache as compile_cache
 from dofjax._fit import LOSSES, SOLVERS
+from fit import _options as fit_options
 from fit._clipped import clipped_mask
 from fit._errors import user_errors
 from fit._table import format_table, result_rows
@@ -75,13 +76,7 @@ def main(argv=None) -> None:
                    "highlights: 1 for an 8-bit image); default: from a data_gen target's noise "
                    "model, else keep every pixel")
     p.add_argument("--window", type=float, help="defocus window (px)")
-    p.add_argument("--method", default="sliced", choices=("sliced", "pyramid", "lens"),
-                   help="the fit's defocus model (lens: polishes what a sliced search found)")
-    p.add_argument("--samples", type=int, help="--method lens: lens points per pixel "
-                   "(default 256; 64 is ~3.5x faster)")
-    p.add_argument("--subapertures", type=int, default=1,
-                   help="--method sliced: aperture sectors composited apart in the polish "
-                   "(closer to a lens behind blurred edges; 4 costs up to 4x per step)")
+    fit_options.add_arguments(p)
     p.add_argument("--layers", type=int, help="--scene: peeled layers to render")
     p.add_argument("--supersample", type=int, default=1,
                    help="--scene: render the sharp input this many times finer per side")
@@ -89,10 +84,7 @@ def main(argv=None) -> None:
     compile_cache.add_argument(p)
     a = p.parse_args(argv)
     compile_cache.use_in_script("recover", a.jax_cache)
-    if a.samples is not None and a.method != "lens":
-        p.error("--samples is for --method lens only")
-    if a.subapertures != 1 and a.method != "sliced":
-        p.error("--subapertures is for --method sliced only")
+    a.defocus_options = fit_options.options(p, a)
     if a.sharp and (a.layers is not None or a.supersample != 1):
         p.error("--layers and --supersample are for --scene (a sharp EXR brings its own)")
     if a.supersample < 1:
@@ -130,8 +122,7 @@ def _run(a: argparse.Namespace) -> None:
         bounds["focus_distance"] = tuple(a.focus_bounds)
     if a.aperture_bounds:
         bounds["aperture_radius"] = tuple(a.aperture_bounds)
-    options = ({"method": a.method} | ({"samples": a.samples} if a.samples is not None else {})
-               | ({"subapertures": a.subapertures} if a.subapertures != 1 else {}))
+    options = a.defocus_options
     # bad input (shapes, NaN, bounds, options) raises ValueError before any solver runs
     mask = clipped_mask(target, a.clipped_at, tmeta.get("noise"))
     if mask is not None:

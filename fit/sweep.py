@@ -30,6 +30,7 @@ import dofjax
 from data_gen._run import read_manifest_file
 from dofjax import _compile_cache as compile_cache
 
+from . import _options as fit_options
 from ._clipped import unclipped
 from ._errors import user_errors
 from ._table import format_table
@@ -97,17 +98,19 @@ def true_camera(truth: dict, width: int, height: int) -> dofjax.Camera:
                          up=truth.get("up", (0, 1, 0)))
 
 
-def _rgbd_model(sharp: dofjax.RGBD, window):
+def _rgbd_model(sharp: dofjax.RGBD, window, options: dict | None = None):
     """The model `fit_focus` fits to `sharp` (its mirror and peeled layers included), as a
     `model(rgb, depth, camera)` for `dofjax.cramer_rao_bound`; None (the default model, the
     same for a plain RGB-D) when there is nothing beyond colour and depth or no fixed window."""
     extras = (sharp.reflection, sharp.layers, sharp.mirror)
     if window is None or all(x is None for x in extras):
         return None
+    options = options or {}
 
     def model(rgb, depth, camera):
         return dofjax.defocus(dofjax.RGBD(rgb, depth, *extras[:1], sharp.reflection_depth,
-                                          sharp.layers, sharp.mirror), camera, window=window)
+                                          sharp.layers, sharp.mirror), camera, window=window,
+                              **options)
 
     return model
 
@@ -125,7 +128,8 @@ def reach(coc_reach: float | None, window: float | None) -> float:
 
 
 def fit_record(rec: dict, root: str, rng: np.random.Generator, window, starts: int,
-               coc_reach: float | None = None, crb: bool = True) -> dict:
+               coc_reach: float | None = None, crb: bool = True,
+               defocus_options: dict | None = None) -> dict:
     """Fit one data_gen record from a random guess; errors, flags and (Gaussian noise) the CRB.
 
     The Cramer-Rao bound is `dofjax.cramer_rao_bound` at the true camera for the record's noise
@@ -147,7 +151,7 @@ def fit_record(rec: dict, root: str, rng: np.random.Generator, window, starts: i
     t = time.perf_counter()
     mask = unclipped(target, rec["noise"])
     res = dofjax.fit_focus(target, sharp, camera, starts=starts, window=window, bounds=bounds,
-                           mask=mask)
+                           mask=mask, defocus_options=defocus_options)
     out = {"index": rec["index"], "kind": rec["kind"], "noise": _noise_level(rec["noise"]),
            "sigma": _sigma(rec["noise"]), "method": rec.get("method", "defocus"),
            "identifiable_kind": bool(rec.get("identifiable", True)),
@@ -158,7 +162,8 @@ def fit_record(rec: dict, root: str, rng: np.random.Generator, window, starts: i
     if crb and math.isfinite(out["sigma"]):
         try:
             bound = dofjax.cramer_rao_bound(rgb, depth, true, out["sigma"], window=window,
-                                            model=_rgbd_model(sharp, window), mask=mask)
+                                            model=_rgbd_model(sharp, window, defocus_options),
+                                            mask=mask, defocus_options=defocus_options)
         except ValueError as e:  # singular: not identifiable, the bound is infinite
             if "singular" not in str(e):
                 raise
@@ -299,11 +304,13 @@ def main(argv=None) -> None:
                    "focus inside the focus bounds (default: 8 windows, as "
                    "benchmarks/fit_accuracy.py)")
     p.add_argument("--starts", type=int, default=8)
+    fit_options.add_arguments(p, "; for data sets of lens-sampled `reference` targets")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-crb", action="store_true", help="skip the Cramer-Rao bound")
     p.add_argument("--out", help="output directory (default: next to the manifest)")
     compile_cache.add_argument(p)
     a = p.parse_args(argv)
+    a.defocus_options = fit_options.options(p, a)
     compile_cache.use_in_script("sweep", a.jax_cache)
     with user_errors("sweep"):  # a missing manifest or sample file, a bad value: named
         _run(a)
@@ -319,7 +326,8 @@ def _run(a: argparse.Namespace) -> None:
     rows = []
     with open(os.path.join(out, "sweep.jsonl"), "w") as f:
         for i, rec in enumerate(records):
-            row = fit_record(rec, root, rng, a.window, a.starts, a.coc_reach, not a.no_crb)
+            row = fit_record(rec, root, rng, a.window, a.starts, a.coc_reach, not a.no_crb,
+                             a.defocus_options)
             rows.append(row)
             f.write(json.dumps(row) + "\n")
             f.flush()
@@ -329,7 +337,8 @@ def _run(a: argparse.Namespace) -> None:
     table = summarise(rows)
     with open(os.path.join(out, "sweep.md"), "w") as f:
         f.write(f"# fit.sweep over {os.path.basename(a.manifest)} ({len(rows)} samples)\n\n"
-                f"Relative errors |fit / true - 1|; SE = the fit's standard error "
+                f"Fit model: {a.defocus_options} (\"method\" column: how the targets were "
+                f"made). Relative errors |fit / true - 1|; SE = the fit's standard error "
                 f"s^2 (J^T J)^-1; CRB = Cramer-Rao bound at the truth (Gaussian noise only).\n\n"
                 f"{table}\n")
     print(table)
