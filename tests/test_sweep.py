@@ -79,3 +79,14 @@ def test_default_aperture_bound_holds_a_data_gen_truth():
     assert reach(None, 16.0) == 128.0 and reach(40.0, 16.0) == 40.0
     lo, hi = guess_and_bounds(rng, depth, fov, reach(None, 16.0))[2]["aperture_radius"]
     assert lo < true_a < hi
+
+
+def test_fit_model_options_are_checked_before_any_fit(tmp_path, capsys):
+    from fit import sweep
+
+    for argv, msg in ((["--samples", "64"], "--samples is for --method lens only"),
+                      (["--method", "lens", "--subapertures", "4"],
+                       "--subapertures is for --method sliced only")):
+        with pytest.raises(SystemExit):
+            sweep.main([str(tmp_path / "manifest.jsonl")] + argv)
+        assert msg in capsys.readouterr().err
