@@ -270,8 +270,11 @@ def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = Non
     method = target_cfg["method"]
     pinhole = dofjax.Camera(width=width, height=height, fov=lens["fov"], focus_distance=1.0,
                             aperture_radius=0.0)
-    layers = target_cfg["layers"] if method == "defocus" else None
-    rgbd = dofjax.render(scene, pinhole, spp=target_cfg["sharp_spp"], layers=layers)
+    # peeled layers for either target method: a defocus target is made from them, and a fit of
+    # a lens-sampled reference target needs them as much (the hidden surfaces a blurred edge
+    # uncovers; without them a sweep's lens polish had no occlusion to model)
+    rgbd = dofjax.render(scene, pinhole, spp=target_cfg["sharp_spp"],
+                         layers=target_cfg["layers"])
     (z_near, z_far), blur_span = _depth_spans(rgbd)  # (blocks until the render is done)
     clock.lap("render")
     fa = draw_focus_aperture(cfg, cam_rng, lens, (z_near, z_far), blur_span, width)
@@ -678,7 +681,8 @@ def dry_run(cfg: Mapping, count: int, seed: int) -> str:
         f"target: {t['method']}"
         + (f" (layers={t['layers']}, sharp spp={t['sharp_spp']}, window={t['window']} px)"
            if t["method"] == "defocus"
-           else f" (lens-sampling reference, spp={t['reference_spp']})"),
+           else f" (lens-sampling reference, spp={t['reference_spp']}; sharp file: "
+                f"layers={t['layers']}, spp={t['sharp_spp']})"),
         "kinds (count / expected):",
     ]
     exp = describe(cfg, count)

@@ -333,6 +333,10 @@ def test_reference_target(tmp_path):
     again = dofjax.render_reference(scene, cam, spp=4,
                                     key=jax.random.key(r["truth"]["reference_key"]))
     np.testing.assert_array_equal(np.asarray(again, np.float32), rgb)
+    # the sharp file carries the configured peeled layers for a reference target too (what a
+    # fit of it needs to model the hidden surfaces)
+    sharp, _ = dofjax.read_rgbd(os.path.join(out, r["files"]["sharp"]))
+    assert sharp.layers is not None and sharp.layers.depth.shape[0] == cfg["target"]["layers"]
 
 
 def test_scene_json_rerenders_to_the_sharp_image(dataset, small_cfg):
