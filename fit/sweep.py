@@ -108,9 +108,9 @@ def _rgbd_model(sharp: dofjax.RGBD, window, options: dict | None = None):
     options = options or {}
 
     def model(rgb, depth, camera):
-        return dofjax.defocus(dofjax.RGBD(rgb, depth, *extras[:1], sharp.reflection_depth,
-                                          sharp.layers, sharp.mirror), camera, window=window,
-                              **options)
+        rgbd = dofjax.RGBD(rgb, depth, sharp.reflection, sharp.reflection_depth, sharp.layers,
+                           sharp.mirror)
+        return dofjax.defocus(rgbd, camera, window=window, **options)
 
     return model
 
