@@ -41,12 +41,17 @@ def _camera(meta: dict, shape, fallback: dofjax.Camera | None, focus, aperture) 
     fov = get("fov", None if base is None else float(base.fov))
     if fov is None:
         raise SystemExit("recover: no fov in the sharp file's metadata; pass --fov")
+    focus = focus if focus is not None else get(
+        "focus_distance", None if base is None else float(base.focus_distance))
+    aperture = aperture if aperture is not None else get(
+        "aperture_radius", None if base is None else float(base.aperture_radius))
+    for value, flag, name in ((focus, "--focus", "focus distance"),
+                              (aperture, "--aperture", "aperture radius")):
+        if value is None:
+            raise SystemExit(f"recover: no initial {name} (the sharp file's metadata has none); "
+                             f"pass {flag}")
     return dofjax.Camera(
-        width=w, height=h, fov=fov,
-        focus_distance=focus if focus is not None else get(
-            "focus_distance", None if base is None else float(base.focus_distance)),
-        aperture_radius=aperture if aperture is not None else get(
-            "aperture_radius", None if base is None else float(base.aperture_radius)),
+        width=w, height=h, fov=fov, focus_distance=focus, aperture_radius=aperture,
         eye=get("eye", (0.0, 0.0, 0.0) if base is None else base.eye),
         target=get("target", (0.0, 0.0, 1.0) if base is None else base.target),
         up=get("up", (0.0, 1.0, 0.0) if base is None else base.up))
@@ -125,6 +130,10 @@ def _run(a: argparse.Namespace) -> None:
     options = a.defocus_options
     # bad input (shapes, NaN, bounds, options) raises ValueError before any solver runs
     mask = clipped_mask(target, a.clipped_at, tmeta.get("noise"))
+    if mask is not None and not mask.any():
+        at = a.clipped_at if a.clipped_at is not None else "its noise model's maximum (1)"
+        raise ValueError(f"{a.target}: every pixel has a channel clipped at {at}: nothing to fit"
+                         + (" (lower --clipped-at's value?)" if a.clipped_at is not None else ""))
     if mask is not None:
         at = a.clipped_at if a.clipped_at is not None else "its noise model's maximum"
         print(f"left out {int(mask.size - mask.sum())} of {mask.size} target pixels clipped at "

@@ -63,6 +63,24 @@ def test_recover_rejects_options_that_do_not_apply(tmp_path, capsys):
         recover.main([path, "--scene", SCENE, "--subapertures", "0"])
 
 
+def test_recover_names_a_target_clipped_everywhere(tmp_path):
+    # (not fit_focus's "mask: selects no pixels", which names an argument the user did not pass)
+    sharp = dofjax.render(dofjax.load_scene(SCENE), _camera(8, 6, 4.0, 0.05))
+    dofjax.write_rgbd(str(tmp_path / "sharp.exr"), sharp, metadata={"fov": 40.0})
+    target = str(tmp_path / "target.exr")
+    dofjax.write_exr(target, np.full((6, 8, 3), 0.7, np.float32))
+    argv = [target, "--sharp", str(tmp_path / "sharp.exr"), "--clipped-at", "0.5"]
+    # and a sharp file without a camera guess in its metadata: the flag to pass, named
+    with pytest.raises(SystemExit, match=r"^recover: no initial focus distance \(the sharp "
+                                         r"file's metadata has none\); pass --focus$"):
+        recover.main(argv)
+    with pytest.raises(SystemExit, match=r"^recover: no initial aperture radius .*--aperture$"):
+        recover.main(argv + ["--focus", "3"])
+    with pytest.raises(SystemExit, match=r"^recover: error: .*target.exr: every pixel has a "
+                                         r"channel clipped at 0.5: nothing to fit"):
+        recover.main(argv + ["--focus", "3", "--aperture", "0.05"])
+
+
 def test_scripts_name_a_missing_or_unreadable_file(tmp_path):
     # one line naming the file (SystemExit's message), not a traceback from the reader
     from fit import sweep
