@@ -326,8 +326,12 @@ def _run(a: argparse.Namespace) -> None:
     rows = []
     with open(os.path.join(out, "sweep.jsonl"), "w") as f:
         for i, rec in enumerate(records):
-            row = fit_record(rec, root, rng, a.window, a.starts, a.coc_reach, not a.no_crb,
-                             a.defocus_options)
+            try:
+                row = fit_record(rec, root, rng, a.window, a.starts, a.coc_reach, not a.no_crb,
+                                 a.defocus_options)
+            except (ValueError, OSError) as e:  # which sample (the rows so far are in the jsonl)
+                raise ValueError(f"sample {rec['index']} ({rec['kind']}; {i} of "
+                                 f"{len(records)} fitted, in {f.name}): {e}") from e
             rows.append(row)
             f.write(json.dumps(row) + "\n")
             f.flush()

@@ -107,6 +107,15 @@ def test_scripts_name_a_missing_or_unreadable_file(tmp_path):
     with pytest.raises(SystemExit, match=r"line 1: not a data_gen manifest record \(no index, "
                        r"truth, kind, noise\)"):
         sweep.main([str(record), "--out", str(tmp_path)])
+    # a sample whose files are gone: named with its index, the rest of the sweep not run
+    gone = tmp_path / "gone.jsonl"
+    gone.write_text(json.dumps({"index": 7, "kind": "planes", "noise": {"model": "none"},
+                                "truth": {"fov": 40.0},
+                                "files": {"sharp": "x.sharp.exr", "target": "x.target.exr"}})
+                    + "\n")
+    with pytest.raises(SystemExit, match=r"^sweep: error: sample 7 \(planes; 0 of 1 fitted, "
+                                         r"in .*sweep\.jsonl\): .*x\.sharp\.exr: no such file"):
+        sweep.main([str(gone), "--out", str(tmp_path)])
     empty = tmp_path / "empty.jsonl"
     empty.write_text("\n")
     with pytest.raises(SystemExit, match="empty manifest"):
