@@ -46,8 +46,12 @@ class _DefaultBounces(int):
 _NO_BOUNCES = _DefaultBounces(0)
 
 
+# What a field's value cannot be, whatever it converts to (a module, a dict, text).
+_NOT_NUMBERS = eqx.Module | Mapping | str | bytes
+
+
 def _as_array(name: str, x, dtype) -> Array:
-    if isinstance(x, eqx.Module | Mapping | str | bytes) or x is None:
+    if isinstance(x, _NOT_NUMBERS) or x is None:
         raise TypeError(f"{name}: must be an array of numbers, got {type(x).__name__}")
     try:
         return jnp.asarray(x, dtype=dtype)
@@ -71,16 +75,19 @@ def _rows(name: str):
     return convert
 
 
+def _flat(name: str, x, dtype, one: str) -> Array:
+    """`x` as an (N,) array of `dtype`; a scalar is one entry (`one` names it in the error)."""
+    a = _as_array(name, x, dtype)
+    if a.ndim > 1:
+        raise ValueError(f"{name}: must have shape (N,) (or be {one}), got shape {a.shape}")
+    return a.reshape(-1)
+
+
 def _per(name: str):
     """Converter to (N,) floats; one value may be given as a number."""
 
     def convert(x) -> Array:
-        a = _as_array(name, x, jnp.result_type(float))
-        if a.ndim > 1:
-            raise ValueError(
-                f"{name}: must have shape (N,) (or be one number), got shape {a.shape}"
-            )
-        return a.reshape(-1)
+        return _flat(name, x, jnp.result_type(float), "one number")
 
     return convert
 
@@ -90,7 +97,7 @@ def _index(name: str):
 
     def convert(x) -> Array:
         raw = None
-        if _is_concrete(x) and not isinstance(x, eqx.Module | Mapping | str | bytes):
+        if _is_concrete(x) and not isinstance(x, _NOT_NUMBERS):
             try:
                 raw = np.asarray(x)
             except (TypeError, ValueError):  # e.g. a list holding tracers: nothing to check
@@ -103,12 +110,7 @@ def _index(name: str):
                 if not np.all(whole):
                     bad = raw.reshape(-1)[int(np.argmin(whole.reshape(-1)))].item()
                     raise ValueError(f"{name}: must be integers, got {bad!r}")
-        a = _as_array(name, x, jnp.int32)
-        if a.ndim > 1:
-            raise ValueError(
-                f"{name}: must have shape (N,) (or be one index), got shape {a.shape}"
-            )
-        return a.reshape(-1)
+        return _flat(name, x, jnp.int32, "one index")
 
     return convert
 
