@@ -32,7 +32,7 @@ from ._io import (
 )
 from ._raycast import Traced as Traced, render as render, trace as trace
 from ._reference import render_reference as render_reference
-from ._rgbd import RGBD as RGBD, Layers as Layers, Mirror as Mirror
+from ._rgbd import RGBD as RGBD, Edges as Edges, Layers as Layers, Mirror as Mirror
 from ._scene import (
     Boxes as Boxes,
     DirectionalLights as DirectionalLights,

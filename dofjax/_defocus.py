@@ -91,8 +91,14 @@ from ._kernels import (
 )
 from ._lens import LENS_SAMPLES, lens_defocus, levels as lens_levels
 from ._numerics import box_pool, inverse_depth
-from ._rgbd import RGBD, Layers, Mirror, grow_by_mirror_reach
-from ._sliced import sliced_defocus, sliced_defocus_adjoint, sliced_defocus_jacobian
+from ._rgbd import RGBD, Edges, Layers, Mirror, grow_by_mirror_reach
+from ._sliced import (
+    coverages,
+    raw_sources,
+    sliced_defocus,
+    sliced_defocus_adjoint,
+    sliced_defocus_jacobian,
+)
 
 METHODS = ("pyramid", "sliced", "lens")
 # Most sub-apertures `defocus(..., subapertures=K)` takes: each adds a blur and a compositing
@@ -135,6 +141,7 @@ class _Config:
     hidden: bool  # estimate the hidden background (single-layer input)
     mirror: bool  # the reflection scattered at its virtual depth, unconfined
     masked: bool = False  # the mirror footprint blurred, as a fourth channel (step 6)
+    front: bool = False  # the last source is the front share of silhouette pixels (`Edges`)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -249,6 +256,40 @@ def _validate(rgb, depth, camera, reflection, reflection_depth, layers, mirror=N
         _check_finite("layers.alpha", layers.alpha)
         _check_depth("layers.depth", layers.depth)
         _check_unit("layers.alpha", layers.alpha)
+        if layers.edges is not None:
+            _check_edges(layers, h, w)
+
+
+def _check_edges(layers: Layers, h: int, w: int) -> None:
+    """`layers.edges` (an `Edges`): shapes, values, and shares that fit in the pixel."""
+    e = layers.edges
+    if not isinstance(e, Edges):
+        raise TypeError(f"defocus: layers.edges must be a dofjax Edges or None, got "
+                        f"{type(e).__name__}")
+    shapes = tuple(np.shape(x) for x in (e.rgb, e.depth, e.alpha, e.behind))
+    if shapes != ((h, w, 3), (h, w), (h, w), (h, w)):
+        raise ValueError(f"defocus: layers.edges must be rgb ({h}, {w}, 3), depth, alpha and "
+                         f"behind ({h}, {w}); got {', '.join(map(str, shapes))}")
+    _check_finite("layers.edges.rgb", e.rgb)
+    _check_finite("layers.edges.alpha", e.alpha)
+    _check_finite("layers.edges.behind", e.behind)
+    _check_depth("layers.edges.depth", e.depth)
+    _check_unit("layers.edges.alpha", e.alpha)
+    _check_unit("layers.edges.behind", e.behind)
+    if _is_concrete(e.alpha) and _is_concrete(e.behind):
+        total = np.asarray(e.alpha) + np.asarray(e.behind)
+        if total.max() > 1.0 + 1e-6:
+            raise ValueError(f"defocus: layers.edges.alpha + behind must be <= 1 (shares of one "
+                             f"pixel), got up to {total.max()}")
+    if _is_concrete(e.behind) and _is_concrete(layers.alpha):
+        behind = np.asarray(e.behind) > 0
+        no_layer = (np.ones((h, w), bool) if layers.alpha.shape[0] < 2
+                    else np.asarray(layers.alpha[1]) <= 0)
+        if (behind & no_layer).any():
+            raise ValueError(
+                f"defocus: layers.edges.behind is the share of peeled layer 1's surface, but it "
+                f"is > 0 on {int((behind & no_layer).sum())} pixel(s) where there is no layer 1 "
+                "(alpha 0 or K = 1)")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -367,14 +408,16 @@ def _core(rgb, inv, alpha, refl, refl_inv, cover, focus_distance, aperture_radiu
     # The same holds for the hidden-background estimate: its pull-push fill can put it within
     # a pixel of CoC of the surface in front (behind a slanted in-focus mirror's far edge it
     # showed through at ~45 %, benchmarks/README.md), so it is gated alike.
-    def behind(c_i, a_i):
-        return a_i * jnp.clip(jnp.abs(c_i - c[0]) - 1.0, 0.0, 1.0)
+    # (by `_sliced.coverages`, with the front share of silhouette pixels if `config.front`,
+    # in levels of -c: a source 1 px of CoC behind another is a level behind it)
+    def behind(i_hidden, i_visible):
+        return jnp.clip(i_hidden - i_visible - 1.0, 0.0, 1.0)
 
-    srcs = [(rgb_c[0], c[0], alpha[0])] + [(rgb_c[i], c[i], behind(c[i], alpha[i]))
-                                           for i in range(1, L)]
+    cov = coverages(alpha, -c, config.front, behind)
+    srcs = [(rgb_c[i], c[i], cov[i]) for i in range(L)]
     if config.hidden:
         h_rgb, h_c, h_a = hidden_layer(rgb_c[0], c[0], config.window)
-        srcs.append((h_rgb, h_c, behind(h_c, h_a)))
+        srcs.append((h_rgb, h_c, h_a * jnp.clip(jnp.abs(h_c - c[0]) - 1.0, 0.0, 1.0)))
 
     m = plan.max_scale
     hp, wp = -(-h // m) * m, -(-w // m) * m
@@ -448,14 +491,11 @@ def _core(rgb, inv, alpha, refl, refl_inv, cover, focus_distance, aperture_radiu
 
 
 def _sources(rgb, depth, reflection, layers, dtype):
-    """Stack the sources the core blurs: (rgb, inverse depth, alpha), each with a leading L axis."""
-    if layers is None:
-        surf = rgb if reflection is None else rgb - reflection
-        return surf[None], inverse_depth(depth)[None], jnp.ones((1,) + depth.shape, dtype)
-    lrgb = jnp.asarray(layers.rgb, dtype)
-    if reflection is not None:  # layer 0's colour includes the mirror's reflected radiance
-        lrgb = lrgb.at[0].add(-reflection)
-    return lrgb, inverse_depth(jnp.asarray(layers.depth, dtype)), jnp.asarray(layers.alpha, dtype)
+    """Stack the sources the core blurs (`_sliced.raw_sources`): (rgb, inverse depth, raw
+    alpha), each with a leading L axis, and whether the last is the front share (`Edges`)."""
+    colours, depths, raws, front = raw_sources(rgb, depth, reflection, layers)
+    return (jnp.stack(colours).astype(dtype), inverse_depth(jnp.stack(depths).astype(dtype)),
+            jnp.stack(raws).astype(dtype), front)
 
 
 def _with_hidden(rgb, depth, reflection, layers, window, method, hidden):
@@ -568,13 +608,13 @@ def _pyramid(rgb, depth, camera, reflection, reflection_depth, layers, window, b
              ratio, hidden, mirror):
     """The pyramid method (`_core`): (image, max |c|)."""
     dtype = rgb.dtype
-    src_rgb, src_inv, src_a = _sources(rgb, depth, reflection, layers, dtype)
+    src_rgb, src_inv, src_a, front = _sources(rgb, depth, reflection, layers, dtype)
     loose = reflection is not None and mirror is None  # the reflection added unconfined
     refl = reflection if loose else jnp.zeros((1, 1, 3), dtype)
     refl_inv = inverse_depth(reflection_depth) if loose else jnp.zeros((1, 1), dtype)
     cover = jnp.zeros((1, 1), dtype) if mirror is None else mirror.coverage
     config = _Config(float(window), blades, rotation, ratio, layers is None and hidden, loose,
-                     mirror is not None)
+                     mirror is not None, front)
     scalars = (jnp.asarray(camera.focus_distance, dtype),
                jnp.asarray(camera.aperture_radius, dtype), jnp.asarray(camera.pixel_scale, dtype))
     out, max_abs = _core(src_rgb, src_inv, src_a, refl, refl_inv, cover, *scalars, config)
@@ -583,7 +623,7 @@ def _pyramid(rgb, depth, camera, reflection, reflection_depth, layers, window, b
     virtual, max_v = _core(mirror.radiance[None], inverse_depth(mirror.depth)[None],
                            jnp.ones((1,) + mirror.depth.shape, dtype), refl, refl_inv, cover,
                            *scalars, dataclasses.replace(config, mirror=False, masked=False,
-                                                         hidden=hidden))
+                                                         hidden=hidden, front=False))
     return _confine(out, virtual), jnp.maximum(max_abs, max_v)
 
 
@@ -854,13 +894,16 @@ def defocus(
     concrete = all(
         _is_concrete(v)
         for v in (rgb, depth, camera.aperture_radius, camera.focus_distance, camera.fov)
-    ) and (layers is None or _is_concrete(layers.depth)) and (
+    ) and (layers is None or (_is_concrete(layers.depth) and (
+        layers.edges is None or _is_concrete(layers.edges.depth)))) and (
         mirror is None or (_is_concrete(mirror.depth) and _is_concrete(mirror.coverage)))
     max_abs = None
     if concrete:
         zs = [np.asarray(depth)]
         if layers is not None:
             zs.append(np.asarray(layers.depth)[np.asarray(layers.alpha) > 0])
+            if layers.edges is not None:
+                zs.append(np.asarray(layers.edges.depth)[np.asarray(layers.edges.alpha) > 0])
         if reflection_depth is not None and mirror is None:  # (with a Mirror, only subtracted)
             zs.append(np.asarray(reflection_depth))
         ak = float(camera.aperture_radius) * float(camera.pixel_scale)

@@ -75,7 +75,7 @@ from ._defocus import as_mirror, check_colour_dtype, supersampling
 from ._kernels import bucket_window
 from ._linalg import ThinQR, unit_column_svd
 from ._numerics import box_pool as _pool, inverse_depth, safe_div
-from ._rgbd import RGBD, Layers, Mirror, grow_by_mirror_reach
+from ._rgbd import RGBD, Edges, Layers, Mirror, grow_by_mirror_reach
 
 PARAMS = ("focus_distance", "aperture_radius")
 SOLVERS = ("lm", "gauss_newton", "dogleg", "bfgs")
@@ -1309,6 +1309,8 @@ def _coarse_extras(extras: _Extras | None, f: int) -> _Extras | None:
         alpha_c = _pool(lay.alpha, f, 1)
         # premultiplied colour, coverage-weighted inverse depth
         rgb_c = safe_div(_pool(lay.rgb * lay.alpha[..., None], f, 1), alpha_c[..., None])
+        # (without `Edges`: a coarse pixel mixes the fine ones' surfaces anyway; the search
+        # levels only place the polish, which runs on the full-resolution input)
         layers = Layers(rgb=rgb_c, depth=_pool_depth(lay.depth, f, lay.alpha), alpha=alpha_c)
     return _Extras(reflection=refl, reflection_depth=refl_z, layers=layers, mirror=mirror)
 
@@ -1406,10 +1408,18 @@ def _unpack(name: str, rgb, depth, camera, model):
         return None if x is None else jnp.asarray(x, dtype)
 
     lay = rgbd.layers
+    layers = None
+    if lay is not None:
+        e = lay.edges
+        if e is not None and not isinstance(e, Edges):
+            raise TypeError(f"{name}: rgbd.layers.edges must be a dofjax Edges or None, got "
+                            f"{type(e).__name__}")
+        layers = Layers(rgb=arr(lay.rgb), depth=arr(lay.depth), alpha=arr(lay.alpha),
+                        edges=None if e is None else Edges(rgb=arr(e.rgb), depth=arr(e.depth),
+                                                           alpha=arr(e.alpha),
+                                                           behind=arr(e.behind)))
     extras = _Extras(reflection=arr(rgbd.reflection), reflection_depth=arr(rgbd.reflection_depth),
-                     layers=None if lay is None else Layers(rgb=arr(lay.rgb), depth=arr(lay.depth),
-                                                            alpha=arr(lay.alpha)),
-                     mirror=as_mirror(name, rgbd.mirror, dtype))
+                     layers=layers, mirror=as_mirror(name, rgbd.mirror, dtype))
     # (a supersampled sharp input, see fit_focus: checked against its own camera)
     camera_sharp = camera.scaled(supersampling(np.shape(rgbd.depth), camera))
     try:  # the defocus' own checks of the mirror layer and the peeled layers
@@ -1427,6 +1437,9 @@ def _depths_seen(depth_a: np.ndarray, weight: np.ndarray, extras: _Extras | None
     if extras is not None and extras.layers is not None:
         a = np.asarray(extras.layers.alpha)
         out.append(np.asarray(extras.layers.depth)[(a > 0) & (weight > 0)[None]])
+        e = extras.layers.edges
+        if e is not None:
+            out.append(np.asarray(e.depth)[(np.asarray(e.alpha) > 0) & (weight > 0)])
     if extras is not None and extras.reflection_depth is not None:
         out.append(np.asarray(extras.reflection_depth)[weight > 0])
     if extras is not None and extras.mirror is not None:  # (on the footprint, as the defocus)

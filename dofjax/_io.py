@@ -580,7 +580,9 @@ def write_rgbd(
     Layout: `rgbd.rgb` -> R, G, B; `rgbd.depth` -> Z; `rgbd.reflection` -> `reflection.R/G/B`;
     `rgbd.reflection_depth` -> `reflection_depth.Z`; `rgbd.mirror` -> `mirror.R/G/B` (radiance),
     `mirror.A` (coverage) and `mirror.Z` (depth); peeled layer k of `rgbd.layers` ->
-    `layer<k>.R/G/B/A` (colour and coverage) and `layer<k>_depth.Z`.
+    `layer<k>.R/G/B/A` (colour and coverage) and `layer<k>_depth.Z`; `rgbd.layers.edges` ->
+    `edges.R/G/B/A` (the front share's colour and fraction), `edges.Z` (its depth) and
+    `edges_behind.R/G/B` (layer 1's share, the same value in all three: a grey mask).
     """
     from ._rgbd import RGBD  # (imported late, as in read_rgbd: _io itself needs no JAX)
 
@@ -605,6 +607,12 @@ def write_rgbd(
         for k in range(rgb_k.shape[0]):
             extra[f"layer{k}"] = np.concatenate([rgb_k[k], alpha_k[k][..., None]], axis=-1)
             extra[f"layer{k}_depth"] = depth_k[k]
+        edges = rgbd.layers.edges
+        if edges is not None:
+            extra["edges"] = np.concatenate(
+                [np.asarray(edges.rgb), np.asarray(edges.alpha)[..., None]], axis=-1)
+            extra["edges.Z"] = edges.depth
+            extra["edges_behind"] = np.repeat(np.asarray(edges.behind)[..., None], 3, axis=-1)
     write_exr(path, rgbd.rgb, rgbd.depth, metadata, extra=extra)
 
 
@@ -613,11 +621,11 @@ def read_rgbd(path: str | os.PathLike):
 
     The arrays are float32 JAX arrays. Raises ValueError if the file has no `Z` channel, or has
     only one of `reflection` / `reflection_depth`, only some of the channels `mirror.R/G/B/A/Z`,
-    or an incomplete set of peeled layers.
+    an incomplete set of peeled layers, or only some of the `edges` layers.
     """
     import jax.numpy as jnp
 
-    from ._rgbd import RGBD, Layers, Mirror
+    from ._rgbd import RGBD, Edges, Layers, Mirror
 
     path = _path_str(path)
     spec, layers = _read_layers(path)
@@ -662,6 +670,7 @@ def read_rgbd(path: str | os.PathLike):
             rgb=jnp.asarray(np.stack(rgbs)),
             depth=jnp.asarray(np.stack(depths)),
             alpha=jnp.asarray(np.stack(alphas)),
+            edges=_read_edges(path, layers, Edges),
         )
     rgbd = RGBD(
         rgb=jnp.asarray(layers["rgb"]),
@@ -672,6 +681,25 @@ def read_rgbd(path: str | os.PathLike):
         mirror=mirror,
     )
     return rgbd, _decode_metadata(spec)
+
+
+def _read_edges(path: str, layers: Mapping[str, np.ndarray], edges_type):
+    """The `Edges` of `write_rgbd`'s `edges`, `edges.Z` and `edges_behind` layers, or None
+    without them."""
+    import jax.numpy as jnp
+
+    names = ("edges", "edges.Z", "edges_behind")
+    found = [n in layers for n in names]
+    if not any(found):
+        return None
+    front, depth, behind = (layers.get(n) for n in names)
+    if (not all(found) or front.ndim != 3 or front.shape[2] != 4 or behind.ndim != 3
+            or behind.shape[2] != 3):
+        raise ValueError(f"{path}: the silhouette-pixel split needs channels edges.R/G/B/A, "
+                         f"edges.Z and edges_behind.R/G/B; found "
+                         f"{', '.join(n for n, f in zip(names, found) if f)}")
+    return edges_type(rgb=jnp.asarray(front[..., :3]), depth=jnp.asarray(depth),
+                      alpha=jnp.asarray(front[..., 3]), behind=jnp.asarray(behind[..., 0]))
 
 
 def write_png(path: str | os.PathLike, rgb: Any, *, exposure: float = 0.0) -> None:

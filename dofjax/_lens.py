@@ -73,6 +73,7 @@ from ._camera import Camera, coc_unchecked
 from ._hidden import hidden_layer
 from ._numerics import safe_div
 from ._sampling import aperture_points
+from ._sliced import coverages, raw_sources
 
 # Lens points per pixel and level spacing, chosen on the quads benchmark with the first (bilinear)
 # version: 128 -> 256 points moved RMSE 0.0059 -> 0.0058; spacing 1 px gave 0.0069, 0.25 px 0.0058
@@ -136,33 +137,41 @@ def _index(c, lv, weights):
     return jnp.interp(-x, jnp.asarray(-grid, c.dtype), jnp.arange(len(lv), dtype=c.dtype))
 
 
+def _behind(i_hidden, i_visible):
+    """Weight of a hidden surface at fractional level index `i_hidden` behind the visible one:
+    0 within one level, 1 from two levels on (then the two share no bracket of levels and the
+    visible one hides the hidden one)."""
+    return jnp.clip(i_hidden - i_visible - 1.0, 0.0, 1.0)
+
+
+def _other_bracket(i_back, i_front):
+    """1 where the source at fractional level index `i_back` lies in a later bracket of levels
+    than the one at `i_front`, else 0: then every ray's read hides the first behind the second
+    (step 2 of the module docstring); within one bracket the two are added."""
+    return (jnp.floor(i_back) > jnp.floor(i_front)).astype(i_back.dtype)
+
+
 def _sources(rgb, depth, camera, reflection, layers, window, lv, weights, hidden=True):
-    """[(colour (H, W, 3), fractional level index, coverage)] of every surface (single-layer
-    input: and the hidden-background estimate, with `hidden`)."""
+    """[(colour (H, W, 3), fractional level index, coverage)] of every surface: the sliced
+    method's (`_sliced.raw_sources`: the visible image, peeled layers, the front share of
+    silhouette pixels) or, for single-layer input with `hidden`, the visible image and the
+    hidden-background estimate; coverages composited as `_sliced.coverages` does."""
     dtype = rgb.dtype
 
     def coc(z):
         return jnp.clip(coc_unchecked(z, camera).astype(dtype), -window, window)
 
-    surface = rgb if reflection is None else rgb - reflection
-    c0 = coc(depth)
-    i0 = _index(c0, lv, weights)
-    out = [(surface, i0, jnp.ones(depth.shape, dtype))]
-    if layers is not None:
-        hidden = [(jnp.asarray(layers.rgb[k], dtype), coc(layers.depth[k]),
-                   jnp.asarray(layers.alpha[k], dtype)) for k in range(1, layers.depth.shape[0])]
-    elif hidden:
-        h_rgb, h_c, h_a = hidden_layer(jnp.moveaxis(surface, -1, 0), c0, window)
-        hidden = [(jnp.moveaxis(h_rgb, 0, -1), h_c, h_a)]
-    else:
-        hidden = []
-    for colour, c, alpha in hidden:
-        ik = _index(c, lv, weights)
-        # only where it lies at least one level behind the visible surface (ramped over a
-        # second): then it shares no bracket of levels with it and is hidden by it
-        behind = jnp.clip(ik - i0 - 1.0, 0.0, 1.0)
-        out.append((colour, ik, alpha * behind))
-    return out
+    colours, depths, raws, front = raw_sources(rgb, depth, reflection, layers)
+    cs = [coc(z) for z in depths]
+    if layers is None and hidden:
+        h_rgb, h_c, h_a = hidden_layer(jnp.moveaxis(colours[0], -1, 0), cs[0], window)
+        colours.append(jnp.moveaxis(h_rgb, 0, -1))
+        cs.append(h_c)
+        raws.append(h_a)
+    idx = [_index(c, lv, weights) for c in cs]
+    alpha = coverages(jnp.stack([jnp.asarray(r, dtype) for r in raws]), jnp.stack(idx), front,
+                      behind=_behind, split=_other_bracket)
+    return list(zip(colours, idx, alpha))
 
 
 def _split(idx, n):

@@ -42,7 +42,7 @@ from ._intersect import (
     unit,
 )
 from ._numerics import safe_div, safe_sqrt
-from ._rgbd import RGBD, Layers, Mirror
+from ._rgbd import RGBD, Edges, Layers, Mirror
 from ._sampling import pixel_positions, pixel_sampler
 from ._scene import Scene, check_scene
 
@@ -592,6 +592,36 @@ def _box_filter_layers(rgb, t, alpha, colour, s_rgb, s_t, s_alpha):
     return jnp.concatenate([colour[:, None], hidden], axis=1)
 
 
+def _edges(t, alpha, s_t, s_colour, on_mirror):
+    """`Edges` of flat pixels from their colour samples' first hits.
+
+    Args: t (N, K), alpha (N, K) of the centre ray's peel; s_t (N, S) and s_colour (N, S, 3) of
+    each sample's first hit; on_mirror (N,) bool (pixels left unsplit) or None. Returns the
+    front share's colour (N, 3), depth (N,) and fraction (N,), and the fraction behind (N,).
+
+    Samples are matched to surfaces by inverse depth within `_SAME_SURFACE` relative, as in
+    `_box_filter_layers`: nearer than the centre's surface is the front share, matching peeled
+    layer 1's surface (where it exists) is the share behind, everything else stays with the
+    centre's surface."""
+    u0, us = 1.0 / t[:, :1], 1.0 / s_t  # 0 for the background (+inf)
+    front = us > u0 * (1.0 + _SAME_SURFACE)
+    behind = jnp.zeros_like(front)
+    if t.shape[1] > 1:
+        u1 = 1.0 / t[:, 1:2]
+        behind = ((us < u0 * (1.0 - _SAME_SURFACE)) & (alpha[:, 1:2] > 0)
+                  & (jnp.abs(us - u1) <= _SAME_SURFACE * u1))
+    if on_mirror is not None:
+        front, behind = front & ~on_mirror[:, None], behind & ~on_mirror[:, None]
+    n = s_t.shape[1]
+    count = front.sum(axis=1)
+    k = jnp.maximum(count, 1)[:, None]
+    colour = jnp.where(front[..., None], s_colour, 0.0).sum(axis=1) / k
+    u_front = jnp.where(front, us, 0.0).sum(axis=1) / k[:, 0]
+    depth = jnp.where(count > 0, 1.0 / jnp.where(count > 0, u_front, 1.0), t[:, 0])
+    dtype = s_colour.dtype
+    return colour, depth, (count / n).astype(dtype), (behind.sum(axis=1) / n).astype(dtype)
+
+
 def _nearest_seed(seed):
     """For every pixel of the (H, W) bool grid `seed`, the flat index (row * W + column) of a
     nearest seed pixel (Euclidean pixel distance), or -1 where there is no seed at all.
@@ -729,6 +759,8 @@ def _render(scene: Scene, camera: Camera, spp: int, layers: int | None, closed) 
             s_t = s_t.reshape(h * w, n_rays, n_layers)
             s_alpha = s_alpha.reshape(h * w, n_rays, n_layers)
             rgb = _box_filter_layers(rgb, t, alpha, colour, s_rgb, s_t, s_alpha)
+            split = _edges(t, alpha, s_t[:, :, 0], s_rgb[:, :, 0],
+                           s_on.any(axis=1) | (on_mirror > 0) if mirrors else None)
     mirror = None
     if mirrors:
         # Radiance per unit coverage on the footprint, the extended plane's beyond it. The depth
@@ -743,10 +775,16 @@ def _render(scene: Scene, camera: Camera, spp: int, layers: int | None, closed) 
         )
     peeled = None
     if layers is not None:
+        edges = None
+        if spp > 1:
+            e_rgb, e_depth, e_alpha, e_behind = split
+            edges = Edges(rgb=e_rgb.reshape(h, w, 3), depth=e_depth.reshape(h, w),
+                          alpha=e_alpha.reshape(h, w), behind=e_behind.reshape(h, w))
         peeled = Layers(
             rgb=jnp.moveaxis(rgb, 1, 0).reshape(layers, h, w, 3),
             depth=t.T.reshape(layers, h, w),
             alpha=alpha.T.reshape(layers, h, w),
+            edges=edges,
         )
     return RGBD(
         rgb=colour.reshape(h, w, 3),

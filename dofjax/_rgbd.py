@@ -12,6 +12,43 @@ import numpy as np
 from jaxtyping import Array, Float
 
 
+class Edges(eqx.Module):
+    """How an antialiased pixel on a silhouette splits between its surfaces (`render` at spp > 1
+    with peeled layers).
+
+    A box-filtered pixel on a depth edge mixes two surfaces into one colour, but has one depth
+    (the pixel centre's): a defocus that blurs the whole colour at that depth keeps a sharp
+    trace of a blurred foreground on an in-focus background (and blurs an in-focus
+    background's share with the foreground). `Edges` says which share of the pixel is which
+    surface, so each is blurred at its own depth. Of the pixel's colour samples:
+
+    - a fraction `alpha` first hit a surface in front of the pixel centre's (the "front": a
+      foreground whose silhouette crosses the pixel but not its centre), of mean colour `rgb`
+      and z-depth `depth` (mean inverse depth; the centre's depth where alpha is 0);
+    - a fraction `behind` first hit the surface of peeled layer 1 (the one behind the
+      centre's), seen beside the centre's surface;
+    - the rest, 1 - alpha - behind, the centre's own surface (layer 0), or whatever else the
+      layers do not hold (the background, a third surface), mixed into it as before.
+
+    So `RGBD.rgb` = alpha * rgb + behind * layers.rgb[1] + (the rest's share of the colour),
+    and the defocus blurs each part at its own depth (`_sliced.raw_sources`, `_sliced._gate`).
+    Pixels with a mirror sample keep alpha = behind = 0 (their reflection is confined
+    separately).
+
+    Attributes:
+        rgb: (H, W, 3) mean colour of the front share (0 where alpha is 0).
+        depth: (H, W) z-depth of the front share.
+        alpha: (H, W) fraction of the pixel covered by the front share, in [0, 1].
+        behind: (H, W) fraction of the pixel where peeled layer 1's surface is seen, in [0, 1]
+            (alpha + behind <= 1).
+    """
+
+    rgb: Float[Array, "h w 3"]
+    depth: Float[Array, "h w"]
+    alpha: Float[Array, "h w"]
+    behind: Float[Array, "h w"]
+
+
 class Layers(eqx.Module):
     """The first K surfaces along each pixel-centre ray (depth peeling), front to back.
 
@@ -20,11 +57,14 @@ class Layers(eqx.Module):
             surfaces in front of it were removed).
         depth: (K, H, W) z-depth of the k-th surface, +inf where the ray has fewer than k+1 hits.
         alpha: (K, H, W) coverage of the pixel by the k-th surface, in [0, 1] (0 where no hit).
+        edges: how silhouette pixels split between surfaces (`Edges`; `render` at spp > 1), or
+            None (each pixel is its centre's surface).
     """
 
     rgb: Float[Array, "k h w 3"]
     depth: Float[Array, "k h w"]
     alpha: Float[Array, "k h w"]
+    edges: Edges | None = None
 
 
 class Mirror(eqx.Module):

@@ -88,7 +88,7 @@ import numpy as np
 from ._camera import Camera, coc_unchecked
 from ._kernels import MAGNITUDES, R0, bucket_window, cell_kernel
 from ._numerics import safe_div, safe_sqrt
-from ._rgbd import Layers
+from ._rgbd import Edges, Layers
 
 # Smallest kernel radius (px, at the reduced resolution) of a level: a level of magnitude m is
 # blurred at 1/s of the resolution, s the largest power of two with m / s >= MIN_LOW_RADIUS.
@@ -363,34 +363,87 @@ def _behind(i_hidden, i_visible):
     return jnp.clip(i_hidden - i_visible - 1.5, 0.0, 1.0)
 
 
-def surface_sources(rgb, depth, reflection, layers, camera, levels):
-    """(colour, z-depth, coverage) of every surface that can be seen through the lens.
+def raw_sources(rgb, depth, reflection, layers):
+    """Every surface that can be seen through the lens, before the camera enters: colours,
+    z-depths and raw coverages (lists, one entry per source), and whether the last source is
+    the front share of silhouette pixels (`Edges`).
 
-    The visible image (minus the mirror's reflected radiance, which is its own source) covers every
-    pixel. Peeled layers k >= 1 add the surfaces hidden behind it (the ray caster's layers are what
-    a blurred foreground can uncover; alpha 0 means nothing more is there). A hidden surface
-    enters only where it lies at least two `levels` behind the visible one (weight ramped from
-    1.5 to 2.5 levels, continuous in focus and aperture): only then do the slices put all of it
-    behind all of the visible surface. Nearer, a slice would not hide it (a slice never hides
-    its own sources) and it would show through an opaque surface (up to 18 % of its colour
-    behind a black one); its blur differs from the visible surface's by under two levels anyway.
-    """
-    ones = jnp.ones(depth.shape, rgb.dtype)
+    The visible image (minus the mirror's reflected radiance, which is its own source) covers
+    every pixel. Peeled layers k >= 1 add the surfaces hidden behind it (the ray caster's layers
+    are what a blurred foreground can uncover; alpha 0 means nothing more is there). With
+    `layers.edges`, a silhouette pixel's colour is split by surface: the front share (alpha f,
+    at its own depth) becomes a last source, the share where layer 1's surface is seen beside
+    the centre's (`behind`, fb) goes to layer 1, and the visible source keeps the rest of the
+    colour, rgb - f rgb_front - fb rgb_1, with raw coverage 1 - f - fb (`_gate` turns raw
+    coverages into the composited ones)."""
     surface = rgb if reflection is None else rgb - reflection
-    out = [(surface, depth, ones)]
+    ones = jnp.ones(depth.shape, rgb.dtype)
+    colours, depths, raws = [surface], [depth], [ones]
     if layers is not None:
-        i0 = _level_index(coc_unchecked(depth, camera).astype(rgb.dtype), levels)
         for k in range(1, layers.depth.shape[0]):
-            ik = _level_index(coc_unchecked(layers.depth[k], camera).astype(rgb.dtype), levels)
-            out.append((layers.rgb[k], layers.depth[k], layers.alpha[k] * _behind(ik, i0)))
-    return out
+            colours.append(layers.rgb[k])
+            depths.append(layers.depth[k])
+            raws.append(layers.alpha[k])
+    edges = None if layers is None else layers.edges
+    if edges is None:
+        return colours, depths, raws, False
+    f, fb = edges.alpha, edges.behind
+    rest = ones - f - fb
+    premultiplied = surface - f[..., None] * edges.rgb
+    if len(colours) > 1:
+        premultiplied = premultiplied - fb[..., None] * layers.rgb[1]
+    colours[0] = safe_div(premultiplied, rest[..., None])
+    raws[0] = rest
+    colours.append(edges.rgb)
+    depths.append(edges.depth)
+    raws.append(f)
+    return colours, depths, raws, True
 
 
-def _sources(rgb, depth, layers, camera, levels, reflection=None):
-    """(colour, signed CoC, coverage) of every surface (see `surface_sources`)."""
-    return [(colour, coc_unchecked(z, camera).astype(rgb.dtype), alpha)
-            for colour, z, alpha in surface_sources(rgb, depth, reflection, layers, camera,
-                                                    levels)]
+def _gate(raw, levels, q, front: bool = False):
+    """Composited coverage (S, ...) of the sources from their raw coverage `raw` (S, ...) and q
+    (`raw_sources`' order: the visible surface, the peeled layers k >= 1, then the front share
+    if `front`).
+
+    A peeled layer enters only where it lies at least two `levels` behind the visible surface
+    (`_behind`: weight ramped from 1.5 to 2.5 levels, continuous in focus and aperture): only
+    then do the slices put all of it behind all of the visible surface. Nearer, a slice would
+    not hide it (a slice never hides its own sources) and it would show through an opaque
+    surface (up to 18 % of its colour behind a black one); its blur differs from the visible
+    surface's by under two levels anyway.
+
+    With the front share (fraction f of the pixel) and layer 1's share beside the visible
+    surface (fb; the visible surface's own is f0 = 1 - f - fb): where the three lie levels
+    apart, the composite is front over visible over layer 1, so the visible surface's coverage
+    is f0 / (1 - f) and layer 1's 1 (then each shows its share of the pixel); where they
+    share slices they are added, with coverages f, f0 and fb. Between the two the same gates
+    blend the coverages (g_front: the visible surface behind the front share, g_1: layer 1
+    behind the visible one): f0 / (1 - f g_front) and alpha_1 (g_1 + (1 - g_1) fb / (1 - f
+    g_front)). Without edges (f = fb = 0) that is 1 and alpha_1 g_1, as before.
+    """
+    return coverages(raw, _level_index_q(q, levels), front)
+
+
+def coverages(raw, i, front: bool = False, behind=_behind, split=None):
+    """`_gate` given the sources' fractional level indices i (S, ...), the gate `behind`
+    (`_behind`; the lens method's is one level nearer) and the gate `split` between a
+    silhouette pixel's shares (default `behind`: the lens method orders two sources exactly
+    when they lie in different brackets of levels, so its gate there is that step)."""
+    split = behind if split is None else split
+    n_layers = raw.shape[0] - front
+    gates = [behind(i[k], i[0]) for k in range(1, n_layers)]
+    if not front:
+        return raw.at[1:].multiply(jnp.stack(gates)) if gates else raw
+    f0, f = raw[0], raw[-1]
+    den = 1.0 - f * split(i[0], i[-1])
+    out = [safe_div(f0, den)]
+    if n_layers > 1:
+        fb = jnp.clip(1.0 - f0 - f, 0.0, 1.0)
+        g1 = jnp.where(fb > 0, split(i[1], i[0]), gates[0])
+        out.append(raw[1] * (g1 + (1.0 - g1) * safe_div(fb, den)))
+        out.extend(raw[k] * gates[k - 1] for k in range(2, n_layers))
+    out.append(f)
+    return jnp.stack(out)
 
 
 def _level_slopes(front_w, back_w, q_lv):
@@ -424,16 +477,23 @@ def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_de
     refl_p = None if reflection is None else pad(reflection, reflection.ndim - 3)
     layers_p = None
     if layers is not None:
+        edges = layers.edges
+        if edges is not None:
+            edges = Edges(rgb=pad(edges.rgb, edges.rgb.ndim - 3),
+                          depth=pad(edges.depth, edges.depth.ndim - 2, "edge"),
+                          alpha=pad(edges.alpha, edges.alpha.ndim - 2),
+                          behind=pad(edges.behind, edges.behind.ndim - 2))
         layers_p = Layers(rgb=pad(layers.rgb, layers.rgb.ndim - 3),
                           depth=pad(layers.depth, layers.depth.ndim - 2, "edge"),
-                          alpha=pad(layers.alpha, layers.alpha.ndim - 2))
+                          alpha=pad(layers.alpha, layers.alpha.ndim - 2), edges=edges)
     inside = jnp.asarray(lay.inside())
-    srcs = _sources(rgb_p, depth_p, layers_p, camera, levels, refl_p)
-    colour = jnp.stack([jnp.moveaxis(s[0], -1, 0) for s in srcs])
-    c = jnp.stack([s[1] for s in srcs])
-    alpha = jnp.where(inside, jnp.stack([s[2] for s in srcs]), 0.0)
+    colours, depths, raws, front = raw_sources(rgb_p, depth_p, refl_p, layers_p)
+    colour = jnp.stack([jnp.moveaxis(x, -1, 0) for x in colours])
+    c = jnp.stack([coc_unchecked(z, camera).astype(rgb.dtype) for z in depths])
     q = jnp.where(inside, jnp.sign(c) * c * c, 0.0)
-    q_r = refl = raw = cover = None
+    raw = jnp.where(inside, jnp.stack(raws).astype(rgb.dtype), 0.0)
+    alpha = _gate(raw, levels, q, front)
+    q_r = refl = cover = None
     if mirror is not None:
         cover = jnp.where(inside, pad(mirror.coverage, mirror.coverage.ndim - 2), 0.0)
     elif reflection is not None:
@@ -441,8 +501,8 @@ def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_de
                          camera).astype(rgb.dtype)
         q_r = jnp.where(inside, jnp.sign(c_r) * c_r * c_r, 0.0)
         refl = jnp.moveaxis(refl_p, -1, 0)
-    if layers is not None:
-        raw = alpha.at[1:].set(jnp.asarray(layers_p.alpha[1:], rgb.dtype))
+    if layers is None:
+        raw = None
     return colour, q, alpha, refl, q_r, raw, cover
 
 
@@ -523,15 +583,17 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     directions = _directions(camera.focus_distance, camera.aperture_radius, camera.pixel_scale,
                              dtype)
     d_alpha = [None, None]
+    front = layers is not None and layers.edges is not None
     if layers is not None:  # a peeled layer's gate depends on its and the visible surface's c
-        d_alpha = [jax.jvp(functools.partial(_gate, raw, levels), (q,), (dq(q),))[1]
-                   for dq in directions]
+        gate = functools.partial(_gate, raw, levels, front=front)
+        d_alpha = [jax.jvp(gate, (q,), (dq(q),))[1] for dq in directions]
     out, jac, res = _composite(colour, q, alpha, refl, q_r, list(zip(directions, d_alpha)),
-                               lay, residuals=residuals, cover=cover)
+                               lay, residuals=residuals, cover=cover, opaque=not front)
     if not residuals:
         return out, tuple(jac)
     crop = _first(lay).crop  # the adjoint's sums run over the image
     return out, tuple(jac), {"composite": res, "q": crop(q), "q_r": crop(q_r), "raw": crop(raw),
+                             "front": crop(raw[-1]) if front else None,
                              "camera": (camera.focus_distance, camera.aperture_radius,
                                         camera.pixel_scale)}
 
@@ -556,7 +618,8 @@ def sliced_defocus_adjoint(res, ct, *, window: float, blades=None, rotation=0.0,
         ratio=float(ratio), min_radius=float(min_radius), layered=raw is not None, cell=cell,
         sectors=sectors)
     if raw is not None:
-        g_q = g_q + jax.vjp(functools.partial(_gate, raw, levels), q)[1](g_alpha)[0]
+        gate = functools.partial(_gate, raw, levels, front=res["front"] is not None)
+        g_q = g_q + jax.vjp(gate, q)[1](g_alpha)[0]
     out = []
     wide = jnp.result_type(float)  # the sums over pixels cancel (energy is conserved): float64
     for dq in _directions(*res["camera"], q.dtype):  # under x64 even for a float32 image
@@ -579,13 +642,6 @@ def _directions(focus_distance, aperture_radius, pixel_scale, dtype):
     shift = 2.0 * a * jnp.asarray(pixel_scale, dtype) / (d * d)
     scale = safe_div(2.0, a)
     return (lambda q: shift * safe_sqrt(jnp.abs(q)), lambda q: scale * q)
-
-
-def _gate(raw, levels, q):
-    """Coverage of the sources given their q: a peeled layer's (`raw`, k >= 1) enters only
-    behind the visible surface (`_behind`)."""
-    i = _level_index_q(q, levels)
-    return raw.at[1:].multiply(_behind(i[1:], i[0]))
 
 
 class _Layout(NamedTuple):
@@ -722,7 +778,7 @@ def _sector_layouts(window, blades, rotation, ratio, min_radius, height, width,
 
 
 def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = False,
-               cover=None):
+               cover=None, opaque: bool = True):
     """The slices of the sources (`_source_fields`, in the padded frame of the layout `lay`),
     blurred and composited (module docstring).
 
@@ -877,9 +933,10 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
                 for k in each:
                     dq = d_q[i](q_p[k])
                     d_front, d_back = slopes[k][0] * dq, slopes[k][1] * dq
-                    if d_alpha_p[i] is None or k == 0:
+                    if d_alpha_p[i] is None or (k == 0 and opaque):
                         # an opaque source: the visible surface covers the image (coverage 1,
-                        # no gate, so d alpha = 0) and dq is 0 outside it, where alpha is
+                        # no gate, so d alpha = 0; not so with `Edges`, `opaque` False) and
+                        # dq is 0 outside it, where alpha is
                         d_occ.append(d_front + 2.0 * bw[k] * d_back)
                         d_w.append(d_front + d_back)
                     else:
