@@ -274,7 +274,21 @@ def guarded_variants(methods, layers, sharp, cam, margin, tag):
             out.append((f"{method}, {layers} layers, {tag}", dict(
                 f=lambda m=method: dofjax.defocus(sharp, cam, margin=margin,
                                                   **method_options(m)))))
+            if sharp.layers is not None and sharp.layers.edges is not None:
+                # the same without `Edges` (silhouette pixels blurred whole at their centre's
+                # depth, as before session 37)
+                plain = unsplit(sharp)
+                out.append((f"{method}, {layers} layers, {tag}, unsplit", dict(
+                    f=lambda m=method: dofjax.defocus(plain, cam, margin=margin,
+                                                      **method_options(m)))))
     return out
+
+
+def unsplit(rgbd):
+    """`rgbd` without its silhouette-pixel split (`Layers.edges`)."""
+    lay = rgbd.layers
+    return dofjax.RGBD(rgbd.rgb, rgbd.depth, rgbd.reflection, rgbd.reflection_depth,
+                       dofjax.Layers(lay.rgb, lay.depth, lay.alpha), rgbd.mirror)
 
 
 def error_map(result, args, file):
