@@ -851,6 +851,13 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
     the sample's own peel it appears (matched by depth; see `_box_filter_layers`). A peeled layer
     is shaded with the whole scene: surfaces in front of it are removed only from the view ray, and
     still cast their shadows and appear in mirrors, as the lens-sampling reference sees them.
+    Also with spp > 1, `layers.edges` (an `Edges`) says how each silhouette pixel splits between
+    its surfaces: the share of samples whose first hit lies in front of the centre's surface
+    (their mean colour and depth), and the share that sees peeled layer 1's surface beside it; the
+    defocus blurs each share at its own depth instead of the pixel's mixed colour at the centre's
+    (on quads, 128 px, max |c| 12, 3 layers: sliced RMSE 0.0110 -> 0.0104, 8 sub-apertures
+    0.0070 -> 0.0059, lens 0.0055 -> 0.0036; benchmarks/README.md). Pixels with a mirror sample
+    are not split.
 
     Raises:
         ValueError: spp or layers not a positive integer.
