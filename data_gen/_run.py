@@ -11,7 +11,8 @@ Layout of an output directory::
     generator.json                     seed + validated config (a resume must match it)
     manifest.jsonl                     one JSON line per sample, in index order
     samples/0000/000000.scene.json     the scene (dofjax scene-file format): the ground truth
-    samples/0000/000000.sharp.exr      sharp RGB + Z (+ mirror and peeled layers), write_rgbd
+    samples/0000/000000.sharp.exr      sharp RGB + Z (+ mirror, peeled layers and, at
+                                       sharp_spp > 1, the split of silhouette pixels), write_rgbd
     samples/0000/000000.target.exr     the noisy target (+ the noise-free one as layer "clean")
     samples/0000/000000.json           the sample's record (= its manifest line); written last
 

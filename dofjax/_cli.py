@@ -189,6 +189,9 @@ def _run_render(args: argparse.Namespace) -> int:
         extras.append("mirror footprint")
     if rgbd.layers is not None:
         extras.append(f"{rgbd.layers.depth.shape[0]} layers")
+        if rgbd.layers.edges is not None:
+            split = np.asarray(rgbd.layers.edges.alpha) + np.asarray(rgbd.layers.edges.behind)
+            extras.append(f"{int((split > 0).sum())} silhouette pixels split")
     print(
         f"wrote {args.output}{' and ' + args.png if args.png else ''}: "
         f"{camera.width}x{camera.height}, spp {args.spp}"
