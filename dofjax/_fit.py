@@ -70,7 +70,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._autodiff import value_and_jacobian
-from ._camera import Camera, check_camera, check_single, coc_unchecked
+from ._camera import Camera, check_camera, check_margin, check_single, coc_unchecked
 from ._defocus import as_mirror, check_colour_dtype, supersampling
 from ._kernels import bucket_window
 from ._linalg import ThinQR, unit_column_svd
@@ -267,6 +267,7 @@ class _Data(eqx.Module):
     depth: Float[Array, "h w"]
     weight: Float[Array, "h w"]
     extras: _Extras | None = None
+    margin: int = eqx.field(static=True, default=0)  # the sharp input's guard band (its px)
 
 
 class _TrustRegion(optx.ClassicalTrustRegion):
@@ -434,6 +435,8 @@ def _predict(ul: Array, data: _Data, camera: Camera, model: Callable) -> Array:
     # (tracing + lowering of a 256x256 fit: 10.3 s with the misses, 7.7 s without).
     with jax.sharding.use_abstract_mesh(jax.sharding.get_abstract_mesh()):
         pred = model(data.rgb, data.depth, cam, **extras)
+    if data.margin:  # the guard band (`camera` is then the padded one, `_prepare`)
+        pred = pred[data.margin: -data.margin, data.margin: -data.margin]
     return _pool(pred, _factor(data), 0)  # a supersampled sharp input (`Camera.scaled`)
 
 
@@ -1127,10 +1130,13 @@ def _check_finite(name: str, a: np.ndarray) -> None:
                          f"first at index {idx}")
 
 
-def _check_images(rgb, depth, camera: Camera) -> tuple[np.ndarray, np.ndarray, int]:
+def _check_images(rgb, depth, camera: Camera, margin: int = 0
+                  ) -> tuple[np.ndarray, np.ndarray, int]:
     """Sharp (H, W, 3) colour and (H, W) depth as numpy arrays, checked against each other and the
-    camera's size (equal, or s times it per side: a supersampled input), colours finite (depth
-    is checked by `_depth_weight`). Returns (rgb, depth, s)."""
+    camera's size (`camera.padded(margin)`'s: equal, or s times it per side: a supersampled
+    input), colours finite (depth is checked by `_depth_weight`). Returns (rgb, depth, s)."""
+    frame = camera
+    camera = camera.padded(margin)
     depth_a = np.asarray(depth)
     if depth_a.ndim != 2:
         raise ValueError(f"depth: expected shape (H, W), got {depth_a.shape}")
@@ -1143,10 +1149,13 @@ def _check_images(rgb, depth, camera: Camera) -> tuple[np.ndarray, np.ndarray, i
     check_colour_dtype("rgb:", rgb_a.dtype)
     s = supersampling(hw, camera)
     if hw != (s * camera.height, s * camera.width):
+        band = (f" plus the guard band of margin={margin} px on every side "
+                f"({camera.width}x{camera.height})" if margin else "")
         raise ValueError(
-            f"camera: width x height {camera.width}x{camera.height} does not match the sharp "
+            f"camera: width x height {frame.width}x{frame.height}{band} does not match the sharp "
             f"image {hw[1]}x{hw[0]} (nor divides it: a sharp input rendered s times finer, with "
-            "camera.scaled(s), is s times the camera's width and height)")
+            "camera.scaled(s), is s times the camera's width and height; one rendered with "
+            "camera.padded(m) needs margin=m)")
     _check_finite("rgb", rgb_a)
     return rgb_a, depth_a, s
 
@@ -1169,7 +1178,7 @@ def _depth_weight(depth_a: np.ndarray, mask, hw: tuple[int, int]) -> np.ndarray:
 
 
 def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, batch, counts,
-              tolerances):
+              tolerances, margin=0):
     """All the checks that must happen before any solver runs. Returns numpy arrays.
 
     `counts` maps an integer option's name to (value, least allowed value), `tolerances` a
@@ -1192,7 +1201,8 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
             raise ValueError(f"fixed: names must be in {PARAMS}, got {name!r}")
     if len(set(fixed)) == 2:
         raise ValueError("fixed: cannot fix both focus_distance and aperture_radius")
-    rgb_a, depth_a, s = _check_images(rgb, depth, camera)
+    rgb_a, depth_a, s = _check_images(rgb, depth, camera, margin)
+    band = margin * s
     hw = (camera.height, camera.width)
     tgt = np.asarray(target)
     want = (hw + (3,)) if not batch else (tgt.shape[:1] + hw + (3,))
@@ -1210,7 +1220,7 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
     finite = np.isfinite(depth_a)
     if mask is not None and weight.sum() <= 0:
         raise ValueError("mask: selects no pixels")
-    if not finite[_upsample(weight, s) > 0].any():
+    if not finite[_upsample(weight, s, band) > 0].any():
         raise ValueError("depth: no finite depth under the mask (all background): nothing to fit")
     d0 = float(camera.focus_distance)
     a0 = float(camera.aperture_radius)
@@ -1220,7 +1230,7 @@ def _validate(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, bat
     for key in bounds:
         if key not in PARAMS:
             raise ValueError(f"bounds: keys must be in {PARAMS}, got {key!r}")
-    z = depth_a[finite & (_upsample(weight, s) > 0)]
+    z = depth_a[finite & (_upsample(weight, s, band) > 0)]
     if "focus_distance" in bounds:
         lo, hi = _bound_pair("focus_distance", bounds["focus_distance"])
         if not lo > 0:
@@ -1276,9 +1286,11 @@ def _bound_pair(key: str, value) -> tuple[float, float]:
     return out[0], out[1]
 
 
-def _upsample(weight: np.ndarray, s: int) -> np.ndarray:
-    """(h, w) target-pixel weights on the s times finer grid of a supersampled sharp input."""
-    return weight if s == 1 else np.repeat(np.repeat(weight, s, axis=0), s, axis=1)
+def _upsample(weight: np.ndarray, s: int, band: int = 0, fill: float = 0.0) -> np.ndarray:
+    """(h, w) target-pixel weights on the s times finer grid of a supersampled sharp input, with
+    its guard band of `band` px (sharp px) on every side set to `fill`."""
+    out = weight if s == 1 else np.repeat(np.repeat(weight, s, axis=0), s, axis=1)
+    return np.pad(out, band, constant_values=fill) if band else out
 
 
 def _pool_depth(depth: Array, f: int, weight: Array | None = None) -> Array:
@@ -1345,12 +1357,46 @@ def _coarse_data(data: _Data, f: int) -> _Data:
 def _factor(data: _Data) -> int:
     """The sharp input's pixels per target pixel, per side (> 1: supersampled, `Camera.scaled`);
     static (from the shapes)."""
-    return data.rgb.shape[0] // data.target.shape[0]
+    return (data.rgb.shape[0] - 2 * data.margin) // data.target.shape[0]
+
+
+def _without_margin(data: _Data) -> _Data:
+    """`data` with its sharp input cropped to the target's frame (no guard band)."""
+    m = data.margin
+    if not m:
+        return data
+
+    def crop(x, lead):  # (lead axes, H, W, ...)
+        if x is None:
+            return None
+        index = (slice(None),) * lead + (slice(m, x.shape[lead] - m),) * 2
+        return x[index]
+
+    extras = data.extras
+    if extras is not None:
+        lay, mir = extras.layers, extras.mirror
+        if lay is not None:
+            e = lay.edges
+            lay = Layers(rgb=crop(lay.rgb, 1), depth=crop(lay.depth, 1),
+                         alpha=crop(lay.alpha, 1),
+                         edges=None if e is None else Edges(
+                             rgb=crop(e.rgb, 0), depth=crop(e.depth, 0),
+                             alpha=crop(e.alpha, 0), behind=crop(e.behind, 0)))
+        if mir is not None:
+            mir = Mirror(coverage=crop(mir.coverage, 0), radiance=crop(mir.radiance, 0),
+                         depth=crop(mir.depth, 0))
+        extras = _Extras(reflection=crop(extras.reflection, 0),
+                         reflection_depth=crop(extras.reflection_depth, 0), layers=lay,
+                         mirror=mir)
+    return _Data(target=data.target, rgb=crop(data.rgb, 0), depth=crop(data.depth, 0),
+                 weight=data.weight, extras=extras)
 
 
 def _search_data(data: _Data) -> _Data:
     """A sharp input s times finer than the target (`Camera.scaled`) box-averaged to the
-    target's resolution: what the multi-start, scan and screens fit (s = 1: `data` itself)."""
+    target's resolution: what the multi-start, scan and screens fit (s = 1: `data` itself),
+    without its guard band (the search places the polish, which blurs the band in)."""
+    data = _without_margin(data)
     s = _factor(data)
     if s == 1:
         return data
@@ -1379,7 +1425,7 @@ def _levels(hw: tuple[int, int], coarse_size: int | None) -> int:
     return f
 
 
-def _unpack(name: str, rgb, depth, camera, model):
+def _unpack(name: str, rgb, depth, camera, model, margin: int = 0):
     """`(rgb, depth, camera)` or `(rgbd, camera)` (the camera third or as camera=) -> rgb, depth,
     camera and the RGBD's extras (mirror layer, peeled layers; None for plain arrays), checked
     on the host."""
@@ -1421,7 +1467,9 @@ def _unpack(name: str, rgb, depth, camera, model):
     extras = _Extras(reflection=arr(rgbd.reflection), reflection_depth=arr(rgbd.reflection_depth),
                      layers=layers, mirror=as_mirror(name, rgbd.mirror, dtype))
     # (a supersampled sharp input, see fit_focus: checked against its own camera)
-    camera_sharp = camera.scaled(supersampling(np.shape(rgbd.depth), camera))
+    _check_images(rgbd.rgb, rgbd.depth, camera, margin)  # (its message names the margin)
+    padded = camera.padded(margin)
+    camera_sharp = padded.scaled(supersampling(np.shape(rgbd.depth), padded))
     try:  # the defocus' own checks of the mirror layer and the peeled layers
         _validate_rgbd(arr(rgbd.rgb), arr(rgbd.depth), camera_sharp, extras.reflection,
                        extras.reflection_depth, extras.layers, extras.mirror)
@@ -1493,8 +1541,9 @@ def _depth_modes(fracs: np.ndarray, n: int = _SCAN_MODES) -> np.ndarray:
 def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, batch,
              rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds, window,
              max_window, defocus_options, start_steps, screen_steps, scan_points, max_condition,
-             ambiguity_threshold, name="fit_focus"):
-    rgb, depth, camera, extras = _unpack(name, rgb, depth, camera, model)
+             ambiguity_threshold, name="fit_focus", margin=0):
+    margin = check_margin(name, margin)
+    rgb, depth, camera, extras = _unpack(name, rgb, depth, camera, model, margin)
     if ((defocus_options or {}).get("hidden") and extras is not None
             and extras.layers is not None):
         raise ValueError(f"{name}: defocus_options hidden=True estimates the hidden background "
@@ -1507,7 +1556,8 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         counts["coarse_size"] = (coarse_size, 1)
     tgt, rgb_a, depth_a, weight, fixed, d_bounds, a_bounds, s = _validate(
         target, rgb, depth, camera, mask, bounds, fixed, solver, loss, batch, counts,
-        dict(rtol=rtol, atol=atol))
+        dict(rtol=rtol, atol=atol), margin)
+    band = margin * s  # the guard band in the sharp input's px
     # (numpy integers pass the checks: plain ints from here on, static in the spec)
     starts, max_steps, start_steps, screen_steps, scan_points, robust_rounds = (
         int(counts[k][0]) for k in ("starts", "max_steps", "start_steps", "screen_steps",
@@ -1556,7 +1606,7 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         fracs = np.concatenate([[frac0[1]], (np.arange(_APERTURE_GRID) + 0.5) / _APERTURE_GRID])
         y_apertures = jnp.asarray(logit(fracs), dtype)
     f = _levels(tgt.shape[-3:-1], coarse_size)
-    weight_sharp = _upsample(weight, s)  # on the sharp input's grid
+    weight_sharp = _upsample(weight, s, band)  # on the sharp input's grid (frame only)
     # the full-resolution scan of u (`_scan`): evenly spaced in u, the guess's aperture (each
     # point then takes its best one, as the starts do), with the scene's most common inverse
     # depths merged in (their places in the sorted scan: `modes`)
@@ -1585,9 +1635,10 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
     else:
         delta0 = jnp.asarray(np.inf, dtype)  # plain least squares (all robust weights 1)
     if model is None:
+        # (the guard band's depths count: what lies there blurs into the frame)
         win = window if window is not None else _auto_window(
-            depth_a, weight_sharp, extras, float(camera.pixel_scale), (u_lo, u_hi), a_bounds[1],
-            max_window, s)
+            depth_a, _upsample(weight, s, band, 1.0), extras, float(camera.pixel_scale),
+            (u_lo, u_hi), a_bounds[1], max_window, s)
         base = DefocusModel(window=float(max(win, 1.0)), **(defocus_options or {}))
         # the lens method and sub-apertures only polish: their minimum lies in the plain
         # sliced model's basin, and a search with them would cost ~1000x (lens) or K x as much
@@ -1609,9 +1660,11 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         scan_points=int(scan_points), batch=bool(batch))
     data = _Data(target=jnp.asarray(tgt, dtype), rgb=jnp.asarray(rgb_a, dtype),
                  depth=jnp.asarray(depth_a, dtype), weight=jnp.asarray(weight, dtype),
-                 extras=extras)
+                 extras=extras, margin=band)
     cameras = tuple(_coarse_camera(camera, g) for g in factors)
-    return data, camera, camera.scaled(s), cameras, param, y_starts, u_scene, delta0, spec
+    # the polish's camera sees the whole sharp input (`_predict` crops the guard band)
+    fine = camera.padded(margin).scaled(s)
+    return data, camera, fine, cameras, param, y_starts, u_scene, delta0, spec
 
 
 @eqx.filter_jit
@@ -1770,6 +1823,7 @@ def fit_focus(
     max_window: float = 32.0,
     defocus_options: dict | None = None,
     model: Callable | None = None,
+    margin: int = 0,
 ) -> FitResult:
     """Fit focus distance and aperture radius so that defocus(rgb, depth) matches `target`.
 
@@ -1874,6 +1928,13 @@ def fit_focus(
         model: a forward model `model(rgb, depth, camera) -> (H, W, 3)`, pure and jittable, used
             instead of dofjax's defocus at every level (window/defocus_options are then ignored).
             Pass the same (hashable) object again to reuse the compiled program.
+        margin: the sharp input (rgb/depth or RGBD) covers this many px (target px) beyond the
+            target's frame on every side: rendered with `camera.padded(margin)` (and
+            `.scaled(s)` when supersampled). The polish's model defocuses all of it and crops
+            to the frame, so what lies just outside the frame blurs in, as it does through a
+            lens (a photograph's or a lens-sampled target's edges; without it the model sees
+            nothing there and the fit is biased where a blurred surface crosses the frame
+            edge). The largest |CoC| + 2 px is enough. The search levels fit the frame only.
 
     Returns:
         A FitResult (values, standard errors, flags and message, fitted camera).
@@ -1888,7 +1949,7 @@ def fit_focus(
     prep = _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, starts, False,
                     rtol, atol, max_steps, model, coarse_size, loss_scale, robust_rounds,
                     window, max_window, defocus_options, start_steps, screen_steps,
-                    scan_points, max_condition, ambiguity_threshold)
+                    scan_points, max_condition, ambiguity_threshold, margin=margin)
     data, camera, fine, cameras, param, y_starts, u_scene, delta0, spec = prep
     raw = _fit_jit(data, camera, fine, cameras, param, y_starts, u_scene, delta0, spec)
     fixed_names = tuple(PARAMS[i] for i in range(2) if i not in spec.free)
@@ -1923,7 +1984,8 @@ def fit_focus_scene(target: ArrayLike, scene, camera: Camera, *, spp: int = 1,
     if len(shape) >= 2 and tuple(shape[:2]) != (int(camera.height), int(camera.width)):
         raise ValueError(f"fit_focus_scene: target is {shape[0]} x {shape[1]} px (H x W), the "
                          f"camera renders {int(camera.height)} x {int(camera.width)}")
-    rgbd = render(scene, camera.scaled(supersample), spp=spp, layers=layers)
+    margin = check_margin("fit_focus_scene", kwargs.get("margin", 0))
+    rgbd = render(scene, camera.padded(margin).scaled(supersample), spp=spp, layers=layers)
     return fit_focus(target, rgbd, camera, **kwargs)
 
 
@@ -2006,7 +2068,8 @@ def fit_focus_batch(
                     opts["loss_scale"], opts["robust_rounds"], opts["window"],
                     opts["max_window"], opts["defocus_options"], opts["start_steps"],
                     opts["screen_steps"], opts["scan_points"], opts["max_condition"],
-                    opts["ambiguity_threshold"], name="fit_focus_batch")
+                    opts["ambiguity_threshold"], name="fit_focus_batch",
+                    margin=opts["margin"])
     data, camera, fine, cameras, param, y_starts, u_scene, delta0, spec = prep
     mesh = Mesh(np.array(devices), ("batch",))
     tg = data.target
