@@ -12,6 +12,15 @@ lists exactly the kinds and noise models it wants. The ``camera`` defaults depen
 
 Ranges: a positive camera or noise parameter is a number (fixed) or ``[lo, hi]`` with
 ``0 < lo <= hi``, drawn per sample log-uniformly (``fov`` uniformly, in degrees).
+
+``target.margin``: the sharp file's guard band, px beyond the target's frame on every side (the
+sharp input is rendered with ``camera.padded(margin)``; fit it with ``fit_focus(...,
+margin=)``, which ``fit.sweep`` and ``fit.recover`` read from the record). ``"auto"`` (the
+default): none for ``defocus`` targets (made from the sharp file, the frame is all they see),
+``ceil(camera.max_coc_px) + 2`` (16 + 2 without a largest CoC) for ``reference`` targets: a
+lens-sampled target's edges gather what lies beyond the frame, and without the band a fit's
+model has nothing there (on a 128 px planes sample the frame border was most of the model's
+error at the true camera; benchmarks/README.md).
 """
 
 from __future__ import annotations
@@ -37,7 +46,8 @@ CAMERA_MODELS = ("thin_lens", "photographic")
 _TOP_KEYS = ("size", "kinds", "scene", "camera", "target", "noise")
 _SCENE_KEYS = ("depth_range", "texture_size", "skimage_textures", "procedural_textures",
                "skimage_fraction")
-_TARGET_KEYS = ("method", "defocus_method", "layers", "sharp_spp", "reference_spp", "window")
+_TARGET_KEYS = ("method", "defocus_method", "layers", "sharp_spp", "reference_spp", "window",
+                "margin")
 _CAMERA_DEFAULTS = {
     "thin_lens": {
         "fov": [35.0, 60.0],
@@ -287,6 +297,10 @@ def validate_config(cfg: Mapping) -> dict:
     target["layers"] = _int(target["layers"], "config.target.layers", 1)
     target["sharp_spp"] = _int(target["sharp_spp"], "config.target.sharp_spp", 1)
     target["reference_spp"] = _int(target["reference_spp"], "config.target.reference_spp", 1)
+    margin = target.get("margin", "auto")
+    if margin != "auto":
+        margin = _int(margin, "config.target.margin", 0)
+    target["margin"] = margin
     if target.get("window") is not None:
         target["window"] = _range(target["window"], "config.target.window", allow_fixed=True)
         if isinstance(target["window"], list):
@@ -337,6 +351,17 @@ def validate_config(cfg: Mapping) -> dict:
         weights = [e["weight"] for e in noise]
         raise ConfigError(f"config.noise: weights must sum to > 0, got {weights}")
     return cfg
+
+
+def sharp_margin(cfg: Mapping) -> int:
+    """The sharp file's guard band in px (``config.target.margin``, "auto" resolved)."""
+    margin = cfg["target"].get("margin", "auto")
+    if margin != "auto":
+        return int(margin)
+    if cfg["target"]["method"] != "reference":
+        return 0
+    largest = cfg["camera"].get("max_coc_px")
+    return int(math.ceil(16.0 if largest is None else largest)) + 2
 
 
 def load_config(

@@ -29,6 +29,7 @@ single depth: focus in front of and behind it blur alike), ``method`` ("defocus"
 ``target``, ``up``, ``camera_model``, ``depth_min`` / ``depth_max`` (visible z-depth span, mirror
 images included), ``max_coc_px`` (largest |CoC| in pixels over every surface the defocus may show,
 hidden peeled layers included), ``aperture_capped`` (the blur bounds narrowed the aperture range),
+``margin`` (the sharp file's guard band in px beyond the frame: ``config.target.margin``),
 and ``focal_length`` / ``sensor_width`` / ``f_number`` (photographic cameras) or
 ``reference_key`` (reference targets: the `jax.random.key` seed). The EXR files carry the same
 truth plus ``kind``, ``identifiable``, ``noise``, ``noise_model``, ``seed``, ``index``,
@@ -50,7 +51,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from ._config import describe, validate_config
+from ._config import describe, sharp_margin, validate_config
 from ._kinds import KIND_FUNCTIONS, choose, make_scene
 from ._noise import apply_noise, draw_noise_params, sample_rng, sample_uint32
 
@@ -228,13 +229,15 @@ def _span(maps) -> tuple[float, float]:
     return float(finite.min()), float(finite.max())
 
 
-def _depth_spans(rgbd) -> tuple[tuple[float, float], tuple[float, float]]:
-    """(near, far) finite z-depth the camera sees (mirror images included), and (near, far) of
-    every surface the defocus may show, hidden peeled layers included."""
+def _depth_spans(rgbd, margin: int = 0) -> tuple[tuple[float, float], tuple[float, float]]:
+    """(near, far) finite z-depth the camera sees in the frame (mirror images included), and
+    (near, far) of every surface the defocus may show, hidden peeled layers and the guard band
+    of `margin` px (what blurs into the frame) included."""
     maps = [np.asarray(rgbd.depth)]
     if rgbd.reflection_depth is not None:
         maps.append(np.asarray(rgbd.reflection_depth))
-    visible = _span(maps)
+    frame = (slice(margin, -margin),) * 2 if margin else (slice(None),) * 2
+    visible = _span([m[frame] for m in maps])
     if rgbd.layers is not None:
         maps.append(np.asarray(rgbd.layers.depth))
     return visible, _span(maps)
@@ -274,9 +277,11 @@ def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = Non
     # peeled layers for either target method: a defocus target is made from them, and a fit of
     # a lens-sampled reference target needs them as much (the hidden surfaces a blurred edge
     # uncovers; without them a sweep's lens polish had no occlusion to model)
-    rgbd = dofjax.render(scene, pinhole, spp=target_cfg["sharp_spp"],
+    # (with a guard band beyond the frame: `config.target.margin`)
+    margin = sharp_margin(cfg)
+    rgbd = dofjax.render(scene, pinhole.padded(margin), spp=target_cfg["sharp_spp"],
                          layers=target_cfg["layers"])
-    (z_near, z_far), blur_span = _depth_spans(rgbd)  # (blocks until the render is done)
+    (z_near, z_far), blur_span = _depth_spans(rgbd, margin)  # (blocks until the render is done)
     clock.lap("render")
     fa = draw_focus_aperture(cfg, cam_rng, lens, (z_near, z_far), blur_span, width)
     camera = pinhole.replace(focus_distance=fa["focus_distance"],
@@ -286,7 +291,7 @@ def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = Non
         # kind; with None, defocus sizes it from each image's largest blur in buckets, which
         # costs one 5-15 s compile per new bucket: slower for data sets of a few hundred samples.
         clean = dofjax.defocus(rgbd, camera, window=target_cfg["window"],
-                               method=target_cfg["defocus_method"])
+                               method=target_cfg["defocus_method"], margin=margin)
         spp = target_cfg["sharp_spp"]
     else:
         key_seed = sample_uint32(seed, index, "reference")
@@ -313,6 +318,7 @@ def build_sample(cfg: Mapping, seed: int, index: int, timings: dict | None = Non
         "depth_max": z_far,
         "max_coc_px": fa["max_coc_px"],
         "aperture_capped": fa["aperture_capped"],
+        "margin": margin,
     }
     if method == "reference":
         truth["reference_key"] = key_seed  # the target is render_reference(..., key=key(this))
@@ -680,10 +686,11 @@ def dry_run(cfg: Mapping, count: int, seed: int) -> str:
     lines = [
         f"data_gen plan: {count} samples, seed {seed}, {w}x{h} px",
         f"target: {t['method']}"
-        + (f" (layers={t['layers']}, sharp spp={t['sharp_spp']}, window={t['window']} px)"
+        + (f" (layers={t['layers']}, sharp spp={t['sharp_spp']}, window={t['window']} px"
            if t["method"] == "defocus"
            else f" (lens-sampling reference, spp={t['reference_spp']}; sharp file: "
-                f"layers={t['layers']}, spp={t['sharp_spp']})"),
+                f"layers={t['layers']}, spp={t['sharp_spp']}")
+        + f", guard band {sharp_margin(cfg)} px)",
         "kinds (count / expected):",
     ]
     exp = describe(cfg, count)

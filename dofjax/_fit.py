@@ -1369,7 +1369,8 @@ def _without_margin(data: _Data) -> _Data:
     def crop(x, lead):  # (lead axes, H, W, ...)
         if x is None:
             return None
-        index = (slice(None),) * lead + (slice(m, x.shape[lead] - m),) * 2
+        index = (slice(None),) * lead + (slice(m, x.shape[lead] - m),
+                                         slice(m, x.shape[lead + 1] - m))
         return x[index]
 
     extras = data.extras

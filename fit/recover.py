@@ -9,7 +9,9 @@ The sharp RGB-D comes from an EXR with R, G, B and Z (`--sharp`; its mirror laye
 layers, as `dofjax.write_rgbd` and data_gen write them, enter the fit), or is rendered from a
 scene file (`--scene`; its camera section supplies pose and fov; mirrors are blurred at their
 virtual depth; `--layers K` renders K peeled layers, `--supersample S` renders S times finer per
-side: see `fit_focus`). A sharp EXR may also be S times the target's size. `--method lens` fits
+side: see `fit_focus`). A sharp EXR may also be S times the target's size, and cover a guard
+band beyond the target's frame (`--margin M` px, default the file's `margin` metadata, which
+data_gen writes; `--scene` renders the band with `--margin`). `--method lens` fits
 with the lens model (the sliced model searches, the lens model polishes; for photographs and
 lens-sampled targets). The initial guess is the file's camera (or --focus/--aperture). Prints
 true (if the target's `dofjax:` metadata has it) vs recovered with standard errors, and writes
@@ -82,6 +84,10 @@ def main(argv=None) -> None:
                    "model, else keep every pixel")
     p.add_argument("--window", type=float, help="defocus window (px)")
     fit_options.add_arguments(p)
+    p.add_argument("--margin", type=int, metavar="M",
+                   help="guard band (target px) the sharp input covers beyond the target's "
+                        "frame on every side (default: the sharp file's `margin` metadata, "
+                        "else 0; --scene: rendered so)")
     p.add_argument("--layers", type=int, help="--scene: peeled layers to render")
     p.add_argument("--supersample", type=int, default=1,
                    help="--scene: render the sharp input this many times finer per side")
@@ -96,6 +102,8 @@ def main(argv=None) -> None:
         p.error(f"--supersample must be >= 1, got {a.supersample}")
     if a.layers is not None and a.layers < 1:
         p.error(f"--layers must be >= 1, got {a.layers}")
+    if a.margin is not None and a.margin < 0:
+        p.error(f"--margin must be >= 0, got {a.margin}")
     with user_errors("recover"):  # a missing or unreadable file, a bad value: named, no traceback
         _run(a)
 
@@ -114,6 +122,7 @@ def _run(a: argparse.Namespace) -> None:
         camera = _camera(meta, target.shape[:2], None, **guess) if "fov" in meta else None
         if camera is None:
             raise SystemExit("recover: no fov in the sharp file's metadata; pass --fov")
+        margin = int(meta.get("margin", 0)) if a.margin is None else a.margin
     else:
         scene = dofjax.load_scene(a.scene)
         cam0 = dofjax.load_camera(a.scene)
@@ -121,7 +130,9 @@ def _run(a: argparse.Namespace) -> None:
             raise SystemExit(f"recover: {a.scene} has no camera section")
         camera = _camera({}, target.shape[:2], cam0, a.focus, a.aperture)
         # with its mirror layer, if the scene has mirrors
-        sharp = dofjax.render(scene, camera.scaled(a.supersample), layers=a.layers)
+        margin = a.margin or 0
+        sharp = dofjax.render(scene, camera.padded(margin).scaled(a.supersample),
+                              layers=a.layers)
     bounds = {}
     if a.focus_bounds:
         bounds["focus_distance"] = tuple(a.focus_bounds)
@@ -140,7 +151,7 @@ def _run(a: argparse.Namespace) -> None:
               f"{at}")
     result = dofjax.fit_focus(target, sharp, camera, bounds=bounds or None, solver=a.solver,
                               loss=a.loss, starts=a.starts, window=a.window,
-                              defocus_options=options, mask=mask)
+                              defocus_options=options, mask=mask, margin=margin)
     truth = {k: tmeta.get(k) for k in ("focus_distance", "aperture_radius")}
     if tmeta.get("role") == "sharp":
         truth = {}
@@ -152,7 +163,7 @@ def _run(a: argparse.Namespace) -> None:
     with open(prefix + ".json", "w") as f:
         json.dump({"target": a.target, "truth": truth, "result": result.as_dict()}, f, indent=1)
     # window None: from the image's own CoCs at the fit, mirror and peeled layers included
-    fitted = dofjax.defocus(sharp, result.camera, window=a.window,
+    fitted = dofjax.defocus(sharp, result.camera, window=a.window, margin=margin,
                             **options)  # the model fit_focus polished with
     strip = np.concatenate([np.asarray(target), np.asarray(fitted),
                             4.0 * np.abs(np.asarray(fitted) - np.asarray(target))], axis=1)

@@ -115,6 +115,14 @@ def _rgbd_model(sharp: dofjax.RGBD, window, options: dict | None = None):
     return model
 
 
+def _padded_mask(mask, shape, margin: int):
+    """`mask` (None: all of the target's frame `shape`) with a guard band of 0 around it."""
+    if not margin:
+        return mask
+    m = np.ones(shape) if mask is None else np.asarray(mask, np.float64)
+    return np.pad(m, margin)
+
+
 def reach(coc_reach: float | None, window: float | None) -> float:
     """The aperture bound's CoC reach (px): `coc_reach`, or 8 windows (of 16 px without one).
 
@@ -144,14 +152,17 @@ def fit_record(rec: dict, root: str, rng: np.random.Generator, window, starts: i
     sharp, _ = dofjax.read_rgbd(os.path.join(root, rec["files"]["sharp"]))
     rgb, depth = np.asarray(sharp.rgb), np.asarray(sharp.depth)
     target, _, _ = dofjax.read_exr(os.path.join(root, rec["files"]["target"]))
-    h, w = depth.shape
-    d0, a0, bounds = guess_and_bounds(rng, depth, truth["fov"], reach(coc_reach, window))
+    # the sharp file's guard band beyond the target's frame (data_gen's config.target.margin)
+    margin = int(truth.get("margin", 0))
+    h, w = np.shape(target)[:2]
+    frame = depth[margin: margin + h, margin: margin + w]
+    d0, a0, bounds = guess_and_bounds(rng, frame, truth["fov"], reach(coc_reach, window))
     true = true_camera(truth, w, h)
     camera = true.replace(focus_distance=d0, aperture_radius=a0)
     t = time.perf_counter()
     mask = unclipped(target, rec["noise"])
     res = dofjax.fit_focus(target, sharp, camera, starts=starts, window=window, bounds=bounds,
-                           mask=mask, defocus_options=defocus_options)
+                           mask=mask, defocus_options=defocus_options, margin=margin)
     out = {"index": rec["index"], "kind": rec["kind"], "noise": _noise_level(rec["noise"]),
            "sigma": _sigma(rec["noise"]), "method": rec.get("method", "defocus"),
            "identifiable_kind": bool(rec.get("identifiable", True)),
@@ -161,9 +172,12 @@ def fit_record(rec: dict, root: str, rng: np.random.Generator, window, starts: i
     bound = np.full(2, np.nan)
     if crb and math.isfinite(out["sigma"]):
         try:
-            bound = dofjax.cramer_rao_bound(rgb, depth, true, out["sigma"], window=window,
-                                            model=_rgbd_model(sharp, window, defocus_options),
-                                            mask=mask, defocus_options=defocus_options)
+            # (over the whole sharp input, its guard band carrying no information: the frame's
+            # pixels of a defocus of all of it are the fit's model)
+            bound = dofjax.cramer_rao_bound(
+                rgb, depth, true.padded(margin), out["sigma"], window=window,
+                model=_rgbd_model(sharp, window, defocus_options),
+                mask=_padded_mask(mask, (h, w), margin), defocus_options=defocus_options)
         except ValueError as e:  # singular: not identifiable, the bound is infinite
             if "singular" not in str(e):
                 raise

@@ -6,7 +6,7 @@ import pytest
 import dofjax
 from tests.test_edges import card_scene
 
-CAM = dofjax.Camera(32, 32, fov=40.0, focus_distance=4.0, aperture_radius=0.2)
+CAM = dofjax.Camera(32, 24, fov=40.0, focus_distance=4.0, aperture_radius=0.2)
 GUESS = CAM.replace(focus_distance=3.0, aperture_radius=0.1)
 M = 8  # > the largest |CoC| (~5 px) + 2
 

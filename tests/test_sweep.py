@@ -90,3 +90,37 @@ def test_fit_model_options_are_checked_before_any_fit(tmp_path, capsys):
         with pytest.raises(SystemExit):
             sweep.main([str(tmp_path / "manifest.jsonl")] + argv)
         assert msg in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_sweep_fits_a_sharp_file_with_a_guard_band(tmp_path):
+    """config.target.margin: the sharp file covers a guard band beyond the frame (recorded in
+    the manifest); the target is made with it and the sweep fits with it (fit_focus margin=)
+    and a Cramer-Rao bound that takes no information from the band."""
+    out = str(tmp_path / "ds")
+    noisy = {**CONFIG, "noise": [{"model": "gaussian", "weight": 1.0, "sigma": 0.01}],
+             "target": {"margin": 5}}
+    run(out, 1, 5, load_config(noisy), progress=False)
+    (rec,) = read_manifest(out)
+    assert rec["truth"]["margin"] == 5
+    sharp, meta = dofjax.read_rgbd(f"{out}/{rec['files']['sharp']}")
+    assert np.shape(sharp.depth) == (40, 50) and meta["margin"] == 5
+    clean = dofjax.read_exr_layers(f"{out}/{rec['files']['target']}")["clean"]
+    true = true_camera(rec["truth"], 40, 30)
+    np.testing.assert_allclose(dofjax.defocus(sharp, true, margin=5, window=16.0), clean,
+                               atol=1e-5)
+    row = fit_record(rec, out, np.random.default_rng(0), 16.0, 4)
+    for name in ("focus_distance", "aperture_radius"):
+        assert 0 < row[f"rel_crb_{name}"] < 0.05
+        assert abs(row[f"rel_err_{name}"]) < 4 * row[f"rel_crb_{name}"], row
+
+
+def test_data_gen_guard_band_defaults_to_reference_targets_only():
+    from data_gen._config import sharp_margin
+
+    cfg = load_config(CONFIG)
+    assert cfg["target"]["margin"] == "auto" and sharp_margin(cfg) == 0
+    ref = load_config({**CONFIG, "target": {"method": "reference"}})
+    assert sharp_margin(ref) == 6 + 2  # ceil(camera.max_coc_px) + 2
+    with pytest.raises(ValueError, match="config.target.margin"):
+        load_config({**CONFIG, "target": {"margin": -1}})
