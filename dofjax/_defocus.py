@@ -413,7 +413,7 @@ def _core(rgb, inv, alpha, refl, refl_inv, cover, focus_distance, aperture_radiu
     def behind(i_hidden, i_visible):
         return jnp.clip(i_hidden - i_visible - 1.0, 0.0, 1.0)
 
-    cov = coverages(alpha, -c, config.front, behind)
+    cov = coverages(alpha, -c, config.front, behind, occlusion=behind)
     srcs = [(rgb_c[i], c[i], cov[i]) for i in range(L)]
     if config.hidden:
         h_rgb, h_c, h_a = hidden_layer(rgb_c[0], c[0], config.window)

@@ -170,7 +170,7 @@ def _sources(rgb, depth, camera, reflection, layers, window, lv, weights, hidden
         raws.append(h_a)
     idx = [_index(c, lv, weights) for c in cs]
     alpha = coverages(jnp.stack([jnp.asarray(r, dtype) for r in raws]), jnp.stack(idx), front,
-                      behind=_behind, split=_other_bracket)
+                      behind=_behind, occlusion=_other_bracket)
     return list(zip(colours, idx, alpha))
 
 

@@ -413,34 +413,62 @@ def _gate(raw, levels, q, front: bool = False):
     surface's by under two levels anyway.
 
     With the front share (fraction f of the pixel) and layer 1's share beside the visible
-    surface (fb; the visible surface's own is f0 = 1 - f - fb): where the three lie levels
-    apart, the composite is front over visible over layer 1, so the visible surface's coverage
-    is f0 / (1 - f) and layer 1's 1 (then each shows its share of the pixel); where they
-    share slices they are added, with coverages f, f0 and fb. Between the two the same gates
-    blend the coverages (g_front: the visible surface behind the front share, g_1: layer 1
-    behind the visible one): f0 / (1 - f g_front) and alpha_1 (g_1 + (1 - g_1) fb / (1 - f
-    g_front)). Without edges (f = fb = 0) that is 1 and alpha_1 g_1, as before.
+    surface (fb; the visible surface's own is f0 = 1 - f - fb): the shares are disjoint parts of
+    the pixel, so each one's coverage is raised by what the compositing hides of it behind the
+    nearer ones (`coverages`, `_occlusion`): in focus the pixel is its input again, and where
+    the shares lie levels apart layer 1's coverage is 1 (the hidden surface behind the visible
+    one), as on every other pixel.
     """
     return coverages(raw, _level_index_q(q, levels), front)
 
 
-def coverages(raw, i, front: bool = False, behind=_behind, split=None):
-    """`_gate` given the sources' fractional level indices i (S, ...), the gate `behind`
-    (`_behind`; the lens method's is one level nearer) and the gate `split` between a
-    silhouette pixel's shares (default `behind`: the lens method orders two sources exactly
-    when they lie in different brackets of levels, so its gate there is that step)."""
-    split = behind if split is None else split
+def _occlusion(i_back, i_front):
+    """The fraction of a source at fractional level index `i_back` that one of unit coverage at
+    `i_front` (nearer) hides where both sit at one pixel, as `_composite` composites them: a
+    source at k + t lies on slices k (weight 1 - t, behind level k) and k + 1 (weight t, in
+    front of it), and slice p is hidden by every slice before p - 1 and by slice p - 1's
+    sources in front of its level fully, those behind it by their weight. So the front source
+    hides slice p by 0 up to its first slice, by (1 - t)^2 on the next, fully beyond; the back
+    source averages that over its two slices. Continuous in both indices."""
+    k = jnp.floor(i_front)
+    t = i_front - k
+    near = (1.0 - t) ** 2
+
+    def hides(p):
+        return jnp.where(p <= k, 0.0, jnp.where(p <= k + 1.0, near, 1.0))
+
+    kb = jnp.floor(i_back)
+    tb = i_back - kb
+    return (1.0 - tb) * hides(kb) + tb * hides(kb + 1.0)
+
+
+def coverages(raw, i, front: bool = False, behind=_behind, occlusion=_occlusion):
+    """`_gate` given the sources' fractional level indices i (S, ...), the gate `behind` of
+    peeled layers (`_behind`; the lens method's is one level nearer) and `occlusion(i_back,
+    i_front)`, the fraction of one source the compositing hides behind another of unit
+    coverage at the same pixel (`_occlusion`; the lens method's is 1 across brackets of
+    levels, 0 within one).
+
+    A silhouette pixel's shares (front f, visible f0, layer 1's fb) are disjoint parts of the
+    pixel, but the compositing hides a farther source behind the coverage of nearer ones by
+    `occlusion`: each share's coverage is raised by what hides it, so that in focus the pixel
+    is again f rgb_front + f0 rgb_0 + fb rgb_1: f0 / (1 - f o_front,0) and fb / (1 - f
+    o_front,1 - a_0 o_0,1), at most 1 (layer 1 then is the hidden surface it is on other
+    pixels). Where a pixel has no layer-1 share, layer 1 takes the `behind` gate as on every
+    other pixel."""
     n_layers = raw.shape[0] - front
     gates = [behind(i[k], i[0]) for k in range(1, n_layers)]
     if not front:
         return raw.at[1:].multiply(jnp.stack(gates)) if gates else raw
     f0, f = raw[0], raw[-1]
-    den = 1.0 - f * split(i[0], i[-1])
-    out = [safe_div(f0, den)]
+    a0 = safe_div(f0, 1.0 - f * occlusion(i[0], i[-1]))
+    out = [a0]
     if n_layers > 1:
         fb = jnp.clip(1.0 - f0 - f, 0.0, 1.0)
-        g1 = jnp.where(fb > 0, split(i[1], i[0]), gates[0])
-        out.append(raw[1] * (g1 + (1.0 - g1) * safe_div(fb, den)))
+        den = 1.0 - f * occlusion(i[1], i[-1]) - a0 * occlusion(i[1], i[0])
+        ok = den > fb
+        share = jnp.where(ok, fb / jnp.where(ok, den, 1.0), 1.0)
+        out.append(raw[1] * jnp.where(fb > 0, share, gates[0]))
         out.extend(raw[k] * gates[k - 1] for k in range(2, n_layers))
     out.append(f)
     return jnp.stack(out)
