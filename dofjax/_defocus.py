@@ -822,6 +822,10 @@ def defocus(
             `coverage * radiance` / `depth`. Without it the reflection is added unconfined.
         layers: peeled surfaces (K, H, W, ...) from `render(..., layers=K)`: used instead of rgb and
             the hidden-background estimate, so blurred foreground edges uncover real surfaces.
+            With `layers.edges` (`render` at spp > 1, a `dofjax.Edges`) each silhouette pixel
+            is blurred share by share, each surface's at its own depth (README, "Silhouette
+            pixels"); checked: shapes, finite, shares in [0, 1] summing to at most 1, no
+            layer-1 share where there is no layer 1.
         window: static largest |c| (px) to support; rounded up to a level magnitude (1, 2, 3, 4, 6,
             8, 12, ..., 128); |c| beyond it is clamped to it. None: chosen from the image (host
             check; not possible under jit): every surface, peeled layer and reflection, and with
