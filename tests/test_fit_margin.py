@@ -15,7 +15,17 @@ def target_with_guard_band(s=1):
     """The defocus of a sharp input rendered M px beyond the frame (s times finer), cropped:
     the card's blurred edge gathers the backdrop beyond the frame, as through a lens."""
     sharp = dofjax.render(card_scene(), CAM.padded(M).scaled(s), spp=4, layers=2)
-    return dofjax.defocus(sharp, CAM, margin=M, window=8.0), sharp
+    return np.asarray(dofjax.defocus(sharp, CAM, margin=M, window=8.0)), sharp
+
+
+def cropped(rgbd, m):
+    """`rgbd` (with peeled layers and their split) without its guard band of m px."""
+    frame = (slice(m, -m), slice(m, -m))
+    lay, e = rgbd.layers, rgbd.layers.edges
+    return dofjax.RGBD(rgbd.rgb[frame], rgbd.depth[frame], layers=dofjax.Layers(
+        lay.rgb[(slice(None), *frame)], lay.depth[(slice(None), *frame)],
+        lay.alpha[(slice(None), *frame)],
+        dofjax.Edges(e.rgb[frame], e.depth[frame], e.alpha[frame], e.behind[frame])))
 
 
 @pytest.mark.parametrize("s", [1, 2])
@@ -24,12 +34,11 @@ def test_margin_recovers_a_target_made_with_a_guard_band(s):
     fit = dofjax.fit_focus(target, sharp, GUESS, margin=M, window=8.0, starts=2)
     assert fit.message == "ok"
     np.testing.assert_allclose([fit.focus_distance, fit.aperture_radius], [4.0, 0.2], rtol=1e-6)
-    # the premise: the same input cut to the frame misses the target near its edges, and the
-    # fit is biased
-    frame = dofjax.render(card_scene(), CAM.scaled(s), spp=4, layers=2)
-    plain = dofjax.fit_focus(target, frame, GUESS, window=8.0, starts=2)
-    errors = np.abs(np.array([plain.focus_distance / 4.0, plain.aperture_radius / 0.2]) - 1)
-    assert errors.max() > 3e-3
+    # the premise: the same input cut to the frame misses the target near its edges only (a
+    # fit of it, scratch: d -0.7 %, A +0.7 %)
+    miss = np.asarray(dofjax.defocus(cropped(sharp, M * s), CAM, window=8.0)) - target
+    assert np.sqrt(np.mean(miss ** 2)) > 1e-3
+    assert np.sqrt(np.mean(miss[6:-6, 6:-6] ** 2)) < 1e-9
 
 
 def test_margin_in_fit_focus_scene_and_batch():
