@@ -856,7 +856,7 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
     (their mean colour and depth), and the share that sees peeled layer 1's surface beside it; the
     defocus blurs each share at its own depth instead of the pixel's mixed colour at the centre's
     (on quads, 128 px, max |c| 12, 3 layers: sliced RMSE 0.0110 -> 0.0104, 8 sub-apertures
-    0.0070 -> 0.0059, lens 0.0055 -> 0.0036; benchmarks/README.md). Pixels with a mirror sample
+    0.0070 -> 0.0058, lens 0.0055 -> 0.0036; benchmarks/README.md). Pixels with a mirror sample
     are not split.
 
     Raises:
