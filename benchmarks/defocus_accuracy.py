@@ -414,6 +414,11 @@ def main():
         r = run_scene(path, args)
         if r is not None:
             results.append(r)
+        # every scene compiles its own programs (its shapes and windows); dropping them keeps a
+        # run over all scenes from exhausting the process's memory maps (session 37's run with
+        # four methods failed at the 11th scene: "LLVM compilation error: Cannot allocate
+        # memory")
+        jax.clear_caches()
     base = os.path.splitext(args.out)[0]
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     shown, skip = [], False
