@@ -415,9 +415,10 @@ def main():
         if r is not None:
             results.append(r)
         # every scene compiles its own programs (its shapes and windows); dropping them keeps a
-        # run over all scenes from exhausting the process's memory maps (session 37's run with
-        # four methods failed at the 11th scene: "LLVM compilation error: Cannot allocate
-        # memory")
+        # run over all scenes within the process's memory maps (session 37's run with four
+        # methods failed at the 11th scene, "LLVM compilation error: Cannot allocate memory"
+        # with 19 GiB free: most likely Linux's limit of 65530 maps per process; one scene
+        # into a run the process held ~8000)
         jax.clear_caches()
     base = os.path.splitext(args.out)[0]
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
