@@ -1135,8 +1135,6 @@ def _check_images(rgb, depth, camera: Camera, margin: int = 0
     """Sharp (H, W, 3) colour and (H, W) depth as numpy arrays, checked against each other and the
     camera's size (`camera.padded(margin)`'s: equal, or s times it per side: a supersampled
     input), colours finite (depth is checked by `_depth_weight`). Returns (rgb, depth, s)."""
-    frame = camera
-    camera = camera.padded(margin)
     depth_a = np.asarray(depth)
     if depth_a.ndim != 2:
         raise ValueError(f"depth: expected shape (H, W), got {depth_a.shape}")
@@ -1147,17 +1145,26 @@ def _check_images(rgb, depth, camera: Camera, margin: int = 0
     if rgb_a.shape != hw + (3,):
         raise ValueError(f"rgb: expected shape {hw + (3,)} to match depth {hw}, got {rgb_a.shape}")
     check_colour_dtype("rgb:", rgb_a.dtype)
-    s = supersampling(hw, camera)
-    if hw != (s * camera.height, s * camera.width):
-        band = (f" plus the guard band of margin={margin} px on every side "
-                f"({camera.width}x{camera.height})" if margin else "")
-        raise ValueError(
-            f"camera: width x height {frame.width}x{frame.height}{band} does not match the sharp "
-            f"image {hw[1]}x{hw[0]} (nor divides it: a sharp input rendered s times finer, with "
-            "camera.scaled(s), is s times the camera's width and height; one rendered with "
-            "camera.padded(m) needs margin=m)")
+    s = _sharp_factor(hw, camera, margin)
     _check_finite("rgb", rgb_a)
     return rgb_a, depth_a, s
+
+
+def _sharp_factor(hw: tuple[int, ...], camera: Camera, margin: int) -> int:
+    """How many times finer per side than `camera` a sharp image of shape `hw` (H, W) is, given
+    that it covers `margin` px beyond the frame (`camera.padded(margin)`); a clear error when
+    it is no integer multiple."""
+    padded = camera.padded(margin)
+    s = supersampling(hw, padded)
+    if tuple(hw) != (s * padded.height, s * padded.width):
+        band = (f" plus the guard band of margin={margin} px on every side "
+                f"({padded.width}x{padded.height})" if margin else "")
+        raise ValueError(
+            f"camera: width x height {camera.width}x{camera.height}{band} does not match the "
+            f"sharp image {hw[1]}x{hw[0]} (nor divides it: a sharp input rendered s times finer, "
+            "with camera.scaled(s), is s times the camera's width and height; one rendered with "
+            "camera.padded(m) needs margin=m)")
+    return s
 
 
 def _depth_weight(depth_a: np.ndarray, mask, hw: tuple[int, int]) -> np.ndarray:
@@ -1468,9 +1475,9 @@ def _unpack(name: str, rgb, depth, camera, model, margin: int = 0):
     extras = _Extras(reflection=arr(rgbd.reflection), reflection_depth=arr(rgbd.reflection_depth),
                      layers=layers, mirror=as_mirror(name, rgbd.mirror, dtype))
     # (a supersampled sharp input, see fit_focus: checked against its own camera)
-    _check_images(rgbd.rgb, rgbd.depth, camera, margin)  # (its message names the margin)
-    padded = camera.padded(margin)
-    camera_sharp = padded.scaled(supersampling(np.shape(rgbd.depth), padded))
+    # (before the defocus' own checks: this error names the margin)
+    camera_sharp = camera.padded(margin).scaled(_sharp_factor(np.shape(rgbd.depth), camera,
+                                                              margin))
     try:  # the defocus' own checks of the mirror layer and the peeled layers
         _validate_rgbd(arr(rgbd.rgb), arr(rgbd.depth), camera_sharp, extras.reflection,
                        extras.reflection_depth, extras.layers, extras.mirror)
