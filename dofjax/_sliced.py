@@ -930,8 +930,7 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
 
         def build(src, q3, first, last):
             """The slice's fields (per lane: colour, coverage, occluders, ...) from the sources
-            `src` (at reduced resolution each with its 2 x 2 phases on axis -3), and the sum of
-            the sources' weights (> 0 where any source reaches the slice)."""
+            `src` (at reduced resolution each with its 2 x 2 phases on axis -3)."""
             colour_p, q_p, alpha_p, d_alpha_p, refl_p, q_r_p, cover_p = src
             # source by source, as (H, W) arrays summed written out: on the stacked (S, H, W)
             # sources XLA CPU compiled the weights into fusions several times slower per
@@ -945,11 +944,9 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
             # in focus and aperture)
             occ = [front[k] + back[k] * bw[k] for k in each]
             lanes = [slice_parts(colour_p, [front[k] + back[k] for k in each], occ)]
-            reach = sum(fw[k] + bw[k] for k in each)
             if mirror:
                 mirror_w = _level_weights(q_r_p, q3, first, last)
                 lanes[0].append(sum(mirror_w) * refl_p)
-                reach = reach + sum(mirror_w)
             if masked:  # the footprint, at the visible surface's (the mirror's) depth
                 lanes[0].append((fw[0] + bw[0]) * cover_p)
             if tangents:
@@ -977,12 +974,12 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
                     lanes[-1].append(mirror_s * d_q[i](q_r_p) * refl_p)
                 if masked:
                     lanes[-1].append(sum(slopes[0]) * d_q[i](q_p[0]) * cover_p)
-            return [x for parts in lanes for x in parts], reach
+            return [x for parts in lanes for x in parts]
 
         def full(state, x):
             q3, first, last, kernel = x
             q3 = (q3[0], q3[1], q3[2])
-            built, reach = build(src, q3, first, last)
+            built = build(src, q3, first, last)
             if s == 1:
                 fields = built
             else:  # the 2 x 2 box average (the phases summed as `_downsample` sums them)
@@ -990,8 +987,8 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
                           for x in built]
             state, ys_sectors = blur_composite(state, fields, kernel)
             ys = None
-            if residuals:  # does any source (or the mirror) reach this slice?
-                ys = (ys_sectors, jnp.any(reach > 0.0))
+            if residuals:  # a reached slice (`_reached`): the adjoint runs its step
+                ys = (ys_sectors, jnp.asarray(True))
             return state, ys
 
         def composite(state, blurred):
@@ -1251,6 +1248,9 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
     g_alpha = jnp.zeros_like(g_q) if layered else None
     g_q_r = jnp.zeros((height, width), dtype) if mirror else None
 
+    # ... and the sources there, read by every run (a view per run was a copy per run)
+    image_sources = tuple(lay.crop(x) for x in (colour, q, alpha, refl, q_r, cover))
+
     def run_back(g_states, i_run):
         """The slices of run `i_run`, back to front: the sectors' state cotangents at the run's
         end -> at its start; the sources' cotangents added to g_q, g_alpha, g_q_r."""
@@ -1259,8 +1259,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         s = factors[ps[0]]
         h, w = hp // s, wp // s
         o = lay.run_view(i_run)
-        colour_p, q_p, alpha_p, refl_p, q_r_p, cover_p = (
-            lay.view(x, i_run) for x in (colour, q, alpha, refl, q_r, cover))
+        colour_p, q_p, alpha_p, refl_p, q_r_p, cover_p = image_sources
 
         def no_sources(gss, *_):  # (gss) in the switch, (gss, spectra) in the FFT cond
             # a slice no source reaches: its fields are zero, and so are their cotangents'
@@ -1309,14 +1308,23 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         acc = (jnp.zeros_like(q_p), jnp.zeros_like(alpha_p) if layered else None,
                None if q_r_p is None else jnp.zeros_like(q_r_p))
 
+        # the cotangents of the accumulated colour and coverage are the same for every slice
+        # (the sums' terms): loop invariants, closed over rather than carried
+        g_accs = [g[:2] for g in g_states]
+
+        def image(x):  # the image's part of the run's view of the padded frame
+            e = lay.border_px - o
+            return x[..., e: e + height, e: e + width]
+
         def body(carry, x):
             """One slice, back to front: the composite step and the blur transposed (the
             state's cotangents after the slice -> before it, and the slice's fields'), then the
             fields' construction from the sources (`slice_parts` of the tangent weights)."""
-            g_states, acc = carry
+            g_hids, acc = carry
             _, _, _, kernel, ys, has = x
             new_states, g_blurred = [], []
-            for (g_rgb, g_cov, g_hid, g_next), (hiding, rgb_b, cov_b) in zip(g_states, ys):
+            for (g_rgb, g_cov), (g_hid, g_next), (hiding, rgb_b, cov_b) in zip(g_accs, g_hids,
+                                                                                ys):
                 seen = 1.0 - hiding
                 transmit = jnp.clip(seen, 0.0, 1.0)
                 # (rgb_b: with the blurred footprint as a fourth channel, `masked`)
@@ -1327,8 +1335,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
                 if masked:
                     g_b.append(transmit * g_rgb[3])
                 g_blurred.append(g_b)
-                new_states.append((g_rgb, g_cov,
-                                   -jnp.where((seen > 0.0) & (seen < 1.0), g_t, 0.0),
+                new_states.append((-jnp.where((seen > 0.0) & (seen < 1.0), g_t, 0.0),
                                    g_hid + g_next))
             g_f = blur_t(g_blurred, kernel, has)
             acc = jax.lax.cond(has, accumulate, lambda acc, x, g_f: acc, acc, x, g_f)
@@ -1337,7 +1344,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
         def accumulate(acc, x, g_f):
             a_q, a_alpha, a_q_r = acc
             q3, first, last = (x[0][0], x[0][1], x[0][2]), x[1], x[2]
-            g_f = [_box_transpose(g, s) for g in g_f]
+            g_f = [image(_box_transpose(g, s)) for g in g_f]
             front_w, back_w = _level_weights(q_p, q3, first, last)
             front_s, back_s = _level_slopes(front_w, back_w, q3)
             g_w = jnp.stack([_channel_sum(g_f[0] * colour_p[k]) for k in each]) + g_f[1]
@@ -1354,18 +1361,15 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
                 a_q = a_q.at[0].add(dq_w[0] * cover_p * g_f[3])
             return a_q, a_alpha, a_q_r
 
-        (g_states, (a_q, a_alpha, a_q_r)), _ = jax.lax.scan(body, (tuple(g_states), acc), xs,
-                                                            reverse=True)
+        (g_hids, (a_q, a_alpha, a_q_r)), _ = jax.lax.scan(
+            body, (tuple(g[2:] for g in g_states), acc), xs, reverse=True)
+        g_states = tuple(g_acc + g_hid for g_acc, g_hid in zip(g_accs, g_hids))
 
-        def image(x):  # the image's part of the run's view of the padded frame
-            e = lay.border_px - o
-            return x[..., e: e + height, e: e + width]
-
-        g_q = g_q + image(a_q)
+        g_q = g_q + a_q
         if a_alpha is not None:
-            g_alpha = g_alpha + image(a_alpha)
+            g_alpha = g_alpha + a_alpha
         if a_q_r is not None:
-            g_q_r = g_q_r + image(a_q_r)
+            g_q_r = g_q_r + a_q_r
         return g_states
 
     s_min = min(factors)
