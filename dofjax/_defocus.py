@@ -586,9 +586,9 @@ def _sliced(rgb, depth, camera, reflection, reflection_depth, layers, window, bl
     # copies in args carry no tangent (else the rule would add a whole second forward-mode
     # pass for a zero contribution)
     # Reverse mode transposes `J @ dy` by the model's own adjoint (`sliced_defocus_adjoint`,
-    # ~1x a forward pass) from the value lane's residuals, so a gradient costs the value
-    # pass with its residuals plus the adjoint (~3.0x a forward pass, median of nine runs at
-    # 512 x 512) instead of J plus the contraction (~3.2x): XLA drops whichever of J and
+    # ~1.25x a forward pass) from the value lane's residuals, so a gradient costs the value
+    # pass with its residuals plus the adjoint (2.9-3.0x a forward pass at 512 x 512,
+    # session 38) instead of J plus the contraction (~3.2x): XLA drops whichever of J and
     # the residuals the mode does not use.
     rest = camera.replace(focus_distance=jax.lax.stop_gradient(camera.focus_distance),
                           aperture_radius=jax.lax.stop_gradient(camera.aperture_radius))
