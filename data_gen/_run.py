@@ -466,13 +466,33 @@ def _check_generator_file(out_dir: str, seed: int, cfg: Mapping) -> None:
         except ValueError:
             theirs = None
         if theirs is not None:
-            if theirs != json.loads(_json_dumps(mine)):
+            mine = json.loads(_json_dumps(mine))
+            if theirs != mine:
                 raise ValueError(
                     f"--out {out_dir!r} holds samples made with a different seed or config "
-                    f"(see its generator.json); use a new directory or the same seed and config"
+                    f"({'; '.join(_differences(theirs, mine))}: see its generator.json); use a "
+                    f"new directory or the same seed and config"
                 )
             return
     _write_text_atomic(path, json.dumps(mine, indent=1, sort_keys=True) + "\n")
+
+
+def _differences(theirs, mine, path: str = "", limit: int = 3) -> list[str]:
+    """The first `limit` keys where two generator.json contents differ, as "key: file value,
+    now value" ("absent" for a key one side lacks, e.g. one a newer data_gen added)."""
+    if isinstance(theirs, dict) and isinstance(mine, dict):
+        out = []
+        for key in sorted(set(theirs) | set(mine)):
+            here = f"{path}.{key}" if path else key
+            if key not in theirs or key not in mine:
+                out.append(f"{here}: {theirs.get(key, 'absent')!r} in the file, "
+                           f"{mine.get(key, 'absent')!r} now")
+            elif theirs[key] != mine[key]:
+                out += _differences(theirs[key], mine[key], here, limit)
+            if len(out) >= limit:
+                break
+        return out[:limit]
+    return [f"{path}: {theirs!r} in the file, {mine!r} now"]
 
 
 def _remove_stale_temporaries(out_dir: str) -> None:

@@ -443,8 +443,24 @@ def test_resume_refuses_a_different_config(dataset, small_cfg, tmp_path):
     out, _ = dataset
     work = str(tmp_path / "other")
     shutil.copytree(out, work)
-    with pytest.raises(ValueError, match="different seed or config"):
+    with pytest.raises(ValueError, match=f"different seed or config .seed: {SEED} in the file, "
+                       f"{SEED + 1} now"):
         run(work, COUNT, SEED + 1, small_cfg, progress=False)
+
+
+def test_resume_names_the_config_keys_that_differ(tmp_path):
+    """A data set from an older data_gen (a config key it did not have) is refused with the
+    key named, not only "different config"."""
+    from data_gen._run import _check_generator_file
+    cfg = {"target": {"kind": "reference", "margin": "auto"}, "noise": {"sigma": 0.01}}
+    out = str(tmp_path)
+    _check_generator_file(out, 3, cfg)
+    _check_generator_file(out, 3, cfg)  # the same: accepted
+    old = {"target": {"kind": "reference"}, "noise": {"sigma": 0.02}}
+    with pytest.raises(ValueError) as err:
+        _check_generator_file(out, 3, old)
+    assert "config.noise.sigma: 0.01 in the file, 0.02 now" in str(err.value)
+    assert "config.target.margin: 'auto' in the file, 'absent' now" in str(err.value)
 
 
 @pytest.mark.slow  # two spawned processes, each imports JAX and compiles its own renderer
