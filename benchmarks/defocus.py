@@ -8,7 +8,9 @@ Speed: 512x512 RGB whose |CoC| reaches 16 px, median of repeated runs after JIT 
 repeat times the floor `scipy.signal.fftconvolve(image, disc radius 16)`, the forward pass, the
 jacfwd and the gradient back to back, and the ratios ("x scipy", "x forward") are medians of the
 per-repeat ratios, so load from other processes hits both sides of a ratio alike; compile time
-(first call minus the median run) separate. Accuracy: every example scene with a camera,
+(first call minus the median run) separate, and the median of minor page faults per call (a
+program whose temporaries exceed 32 MiB faults in fresh memory every call; `--tune-host-memory`
+removes most of that). Accuracy: every example scene with a camera,
 its aperture scaled so the largest |CoC| is --max-coc px, against `render_reference`; rows for
 dofjax with peeled layers, dofjax single-layer RGB-D, and the seed algorithm (Yu 2004).
 """
@@ -19,6 +21,11 @@ import argparse
 import glob
 import os
 import time
+
+try:
+    import resource  # minor page faults per call (Unix)
+except ImportError:  # pragma: no cover
+    resource = None
 
 import jax
 import jax.numpy as jnp
@@ -69,15 +76,18 @@ def speed(size: int, max_coc: float, repeats: int, dtype, method="pyramid"):
     # to that repeat's forward pass, not a ratio of two separately normalised medians).
     base()
     times = {name: [] for name in fns}
+    faults = {name: [] for name in fns}
     floor = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         base()
         floor.append(time.perf_counter() - t0)
         for name, fn in fns.items():
+            f0 = _minor_faults()
             t0 = time.perf_counter()
             jax.block_until_ready(fn(p))
             times[name].append(time.perf_counter() - t0)
+            faults[name].append(_minor_faults() - f0)
     floor = np.asarray(floor)
     rows = []
     for name, ts in times.items():
@@ -85,8 +95,15 @@ def speed(size: int, max_coc: float, repeats: int, dtype, method="pyramid"):
         rows.append((f"{method}: {name}", float(np.median(ts)) * 1e3, float(np.median(floor)) * 1e3,
                      float(np.median(ts / floor)),
                      float(np.median(ts / np.asarray(times["forward"]))),
-                     compile_s[name] - float(np.median(ts))))
+                     compile_s[name] - float(np.median(ts)), float(np.median(faults[name]))))
     return rows
+
+
+def _minor_faults() -> int:
+    """The process's minor page faults so far (0 where `resource` is missing): a program whose
+    temporaries exceed glibc's 32 MiB mmap ceiling faults in fresh pages on every call
+    (benchmarks/README.md, "Defocus speed")."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt if resource else 0
 
 
 def _camera_like(cam, size):
@@ -171,12 +188,14 @@ def main():
              f"host memory: {'dofjax.tune_host_memory() ' + str(tuned) if tuned else 'default'}\n",
              f"## Speed: {args.size}x{args.size} RGB, max |c| {args.max_coc:g} px, "
              f"{np.dtype(dtype).name}\n",
-             "| what | median ms | scipy fftconvolve ms | x scipy | x forward | compile s |",
-             "|---|---|---|---|---|---|"]
+             "| what | median ms | scipy fftconvolve ms | x scipy | x forward | compile s "
+             "| page faults / call |",
+             "|---|---|---|---|---|---|---|"]
     rows = [row for method in args.methods.split(",")
             for row in speed(args.size, args.max_coc, args.repeats, dtype, method=method)]
-    for name, t, b, r, rf, comp in rows:
-        lines.append(f"| {name} | {t:.1f} | {b:.1f} | {r:.2f} | {rf:.2f} | {comp:.1f} |")
+    for name, t, b, r, rf, comp, nf in rows:
+        lines.append(f"| {name} | {t:.1f} | {b:.1f} | {r:.2f} | {rf:.2f} | {comp:.1f} "
+                     f"| {nf:.0f} |")
     print("\n".join(lines), flush=True)
     if not args.skip_accuracy:
         acc = [f"\n## Accuracy vs render_reference ({args.spp} spp), {args.acc_size} px wide, "
