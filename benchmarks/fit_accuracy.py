@@ -198,7 +198,8 @@ def _header(args, what: str, sharp_spp: int | None = None) -> str:
             f"{'default' if args.screen_steps is None else args.screen_steps}, scan_points "
             f"{'default' if args.scan_points is None else args.scan_points}, "
             f"coc_reach x{args.coc_reach:g}, sharp spp "
-            f"{sharp_spp or args.sharp_spp}, "
+            f"{sharp_spp or args.sharp_spp}"
+            f"{f', suite layers {args.suite_layers}' if getattr(args, 'suite_layers', 0) else ''}, "
             f"jax x64={jax.config.jax_enable_x64}, {platform.machine()} "
             f"{os.cpu_count()} CPUs.\n\nCommand: `python benchmarks/fit_accuracy.py "
             f"{_command()}`\n")
@@ -241,10 +242,18 @@ def suite(args) -> None:
     bar = tqdm(range(args.first, args.first + args.cases), desc="suite", unit="case")
     for index in bar:
         case = make_case(cfg, args.seed, index)
-        target = np.asarray(forward(case["rgb"], case["depth"], case["camera"]))
+        rgbd = None
+        if args.suite_layers > 0:  # the model's target and the fit's input: a layered render
+            rgbd = suite_rgbd(case, args)
+            target = np.asarray(forward(rgbd.rgb, rgbd.depth, case["camera"],
+                                        reflection=rgbd.reflection,
+                                        reflection_depth=rgbd.reflection_depth,
+                                        layers=rgbd.layers, mirror=rgbd.mirror))
+        else:
+            target = np.asarray(forward(case["rgb"], case["depth"], case["camera"]))
         rng = np.random.default_rng([args.seed, index, 1])
         guess, bounds = guess_camera(case, rng, args.coc_reach * args.window)
-        row = fit_case(target, case, guess, bounds, args)
+        row = fit_case(target, case, guess, bounds, args, rgbd=rgbd)
         rows.append(row)
         bar.set_postfix(kind=case["kind"], d=f"{row['rel_err_focus_distance']:+.1e}",
                         A=f"{row['rel_err_aperture_radius']:+.1e}", s=f"{row['seconds']:.1f}")
@@ -578,6 +587,18 @@ def gauss_newton_split(model, residual, camera, regions, weight) -> dict:
     return out
 
 
+def suite_rgbd(case: dict, args):
+    """`--suite-layers K`: the case's scene rendered with K peeled layers at `--sharp-spp`
+    (spp > 1 also splits silhouette pixels, `dofjax.Edges`), the suite's target made from it
+    by the fit's model and the fit given it: whether the layers and the split change what the
+    fit's search finds."""
+    import dofjax
+
+    pinhole = case["camera"].replace(focus_distance=1.0, aperture_radius=0.0)
+    return dofjax.render(dofjax.scene_from_dict(case["scene"]), pinhole, spp=args.sharp_spp,
+                         layers=args.suite_layers)
+
+
 def sharp_rgbd(case: dict, args):
     """The fit's sharp input: None (the case's visible-surface rgb and depth: `--ref-layers 0`),
     or `dofjax.render(scene, pinhole, spp=--ref-sharp-spp, layers=--ref-layers)`: the RGBD whose
@@ -826,6 +847,10 @@ def main(argv=None) -> None:
     p.add_argument("--loss", default="l2", choices=("l2", "huber", "cauchy"),
                    help="fit_focus loss (robust losses with their automatic scale)")
     p.add_argument("--sharp-spp", type=int, default=1, help="samples per pixel of the sharp render")
+    p.add_argument("--suite-layers", type=int, default=0,
+                   help="suite: render the sharp input with this many peeled layers (with "
+                   "--sharp-spp > 1 also the split silhouette pixels), target and fit from it "
+                   "(0: the visible surface only)")
     p.add_argument("--noise-scenes", type=int, default=3)
     p.add_argument("--draws", type=int, default=50)
     p.add_argument("--sigma", type=float, default=0.01)
