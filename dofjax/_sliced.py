@@ -69,9 +69,10 @@ w.r.t. (focus, aperture):
 - reverse mode (`jax.grad`, `jax.vjp`): `sliced_defocus_adjoint`, the transpose of those
   tangent lanes written out (`_composite_adjoint`: the scans run back to front, each blur by
   its point-reflected kernel, each resampling by its transpose) from the value lane's per-slice
-  residuals (what hid the slice, its blurred colour and coverage): the value pass (~1.4x a
-  forward pass: it stores the residuals) plus ~1x, 2.7-3.0x in all instead of J's 3x plus the
-  contraction (3.05-3.3x; `benchmarks/README.md`).
+  residuals (what hid the slice, its blurred colour and coverage): the value pass (~1.4-1.5x a
+  forward pass: it stores the residuals) plus ~1.25x, 2.9-3.0x in all at 512 x 512 (2.4x at
+  256 x 256, where no call faults in fresh memory) instead of J's 3x plus the contraction
+  (3.05-3.3x; `benchmarks/README.md`, "Defocus speed").
   `_autodiff.dense_jacobian` routes the two modes (a primitive whose transpose is the adjoint).
 """
 
