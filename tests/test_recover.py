@@ -50,7 +50,8 @@ def test_recover_rejects_options_that_do_not_apply(tmp_path, capsys):
                        "--subapertures is for --method sliced only"),
                       (["--sharp", path, "--supersample", "2"], "are for --scene"),
                       (["--supersample", "0"], "--supersample must be >= 1"),
-                      (["--layers", "0"], "--layers must be >= 1")):
+                      (["--layers", "0"], "--layers must be >= 1"),
+                      (["--margin", "-1"], "--margin must be >= 0, got -1")):
         if "--sharp" not in argv:
             argv = ["--scene", SCENE] + argv
         with pytest.raises(SystemExit):
