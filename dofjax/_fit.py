@@ -71,7 +71,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._autodiff import value_and_jacobian
 from ._camera import Camera, check_camera, check_margin, check_single, coc_unchecked
-from ._defocus import as_mirror, check_colour_dtype, supersampling
+from ._defocus import _crop, as_mirror, check_colour_dtype, supersampling
 from ._kernels import bucket_window
 from ._linalg import ThinQR, unit_column_svd
 from ._numerics import box_pool as _pool, inverse_depth, safe_div
@@ -435,9 +435,9 @@ def _predict(ul: Array, data: _Data, camera: Camera, model: Callable) -> Array:
     # (tracing + lowering of a 256x256 fit: 10.3 s with the misses, 7.7 s without).
     with jax.sharding.use_abstract_mesh(jax.sharding.get_abstract_mesh()):
         pred = model(data.rgb, data.depth, cam, **extras)
-    if data.margin:  # the guard band (`camera` is then the padded one, `_prepare`)
-        pred = pred[data.margin: -data.margin, data.margin: -data.margin]
-    return _pool(pred, _factor(data), 0)  # a supersampled sharp input (`Camera.scaled`)
+    # without the guard band (`camera` is then the padded one, `_prepare`), box-averaged to the
+    # target's pixels (a supersampled sharp input, `Camera.scaled`)
+    return _pool(pred[_crop(data.margin)], _factor(data), 0)
 
 
 def _residual_ul(ul, data: _Data, camera: Camera, model: Callable, loss: str, delta) -> Array:
@@ -1376,9 +1376,7 @@ def _without_margin(data: _Data) -> _Data:
     def crop(x, lead):  # (lead axes, H, W, ...)
         if x is None:
             return None
-        index = (slice(None),) * lead + (slice(m, x.shape[lead] - m),
-                                         slice(m, x.shape[lead + 1] - m))
-        return x[index]
+        return x[(slice(None),) * lead + _crop(m)]
 
     extras = data.extras
     if extras is not None:

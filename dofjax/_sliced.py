@@ -925,9 +925,8 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
                               for rgb, cov, _, hiding_next in state) for state in states)
             ys = None
             if residuals:
-                ys = (tuple((state[0][2], jnp.zeros_like(state[0][0][:nt]),
-                             jnp.zeros_like(state[0][1])) for state in states),
-                      jnp.asarray(False))
+                ys = tuple((state[0][2], jnp.zeros_like(state[0][0][:nt]),
+                            jnp.zeros_like(state[0][1])) for state in states)
             return new, ys
 
         def build(src, q3, first, last):
@@ -988,10 +987,7 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
                 fields = [_downsample(sum(x[..., i, :, :] for i in range(4)) / 4, s // 2)
                           for x in built]
             state, ys_sectors = blur_composite(state, fields, kernel)
-            ys = None
-            if residuals:  # a reached slice (`_reached`): the adjoint runs its step
-                ys = (ys_sectors, jnp.asarray(True))
-            return state, ys
+            return state, ys_sectors if residuals else None
 
         def composite(state, blurred):
             """The blurred slice (a list of fields, `len(blurred) // n_lanes` per lane) seen
@@ -1111,11 +1107,12 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
             out = out + acc_rgb[3:6, :height, :width]
         outs.append(jnp.moveaxis(out, 0, -1))
         douts.append(d_outs)
-        if residuals:  # (a run's ys: per slice, each sector's (hiding, rgb_b, cov_b), and has)
+        if residuals:  # (a run's ys: per slice, each sector's (hiding, rgb_b, cov_b); the
+            # adjoint runs the slices `reached` ran here)
             res.append({"sources": (colour, q, alpha, refl if mirror else None,
                                     q_r if mirror else None, cover),
-                        "ys": [(ys[0][j], ys[1]) for ys in run_ys], "far": far_res[j],
-                        "final": (acc_rgb[:nt], acc_cov)})
+                        "ys": [ys[j] for ys in run_ys], "reached": reached,
+                        "far": far_res[j], "final": (acc_rgb[:nt], acc_cov)})
     if single:
         return outs[0], douts[0], res[0] if residuals else None
     return (jnp.stack(outs), [jnp.stack(d) for d in zip(*douts)],
@@ -1306,7 +1303,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
                 return jax.lax.cond(has, fft_t, no_sources, gss, k)
 
         xs = lay.level_table(i_run, dtype) + (
-            ks, tuple(r["ys"][i_run][0] for r in ress), ress[0]["ys"][i_run][1])
+            ks, tuple(r["ys"][i_run] for r in ress), ress[0]["reached"][np.asarray(ps)])
         acc = (jnp.zeros_like(q_p), jnp.zeros_like(alpha_p) if layered else None,
                None if q_r_p is None else jnp.zeros_like(q_r_p))
 
