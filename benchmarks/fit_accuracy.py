@@ -897,6 +897,8 @@ def main(argv=None) -> None:
             args.ref_border = int(args.ref_border)
         except ValueError:
             p.error(f"--ref-border: 'auto' or a number of px, got {args.ref_border!r}")
+    if args.suite_layers < 0:
+        p.error(f"--suite-layers must be >= 0, got {args.suite_layers}")
     if args.x64:
         jax.config.update("jax_enable_x64", True)
     if args.jax_cache:
