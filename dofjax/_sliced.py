@@ -17,8 +17,8 @@
    disc costs what a radius-2 disc does at 1/64 of the pixels. Only levels |m| <= 3 run at full
    resolution: a full-resolution slice costs ~6 ms at 512 x 512 in memory traffic alone. A
    reduced-resolution run reads the sources as their 2 x 2 polyphase components (`_phases`,
-   split once per run), so its slices are built from contiguous arrays (strided reads cost the
-   CPU ~2x per slice; the 512 x 512 forward pass 4-6 % faster, the same numbers).
+   split once for all of them), so its slices are built from contiguous arrays (strided reads
+   cost the CPU ~2x per slice; the 512 x 512 forward pass 4-6 % faster, the same numbers).
 3. Slices are composited front to back, one `lax.scan` per run of levels that share a resolution
    and blur method (compiles in seconds; reverse mode stores one carry per slice; a
    `lax.switch` on the level's kernel inside the scan pays each level only its own taps; the
@@ -858,6 +858,12 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
     run_ys = []  # per run: the value lane's (hiding, rgb_b, cov_b) of every slice per sector
     reached = _reached(q, alpha, q_r, lay, dtype)
 
+    @functools.cache
+    def all_phases():  # (made once, on the first reduced-resolution run that asks)
+        return jax.tree_util.tree_map(_phases, (
+            colour, q, alpha, list(d_alpha), refl if mirror else None,
+            q_r if mirror else None, cover if masked else None))
+
     def run(states, i_run):
         """Composite the levels of run `i_run` (one resolution) front to back onto `states`
         (per sector, one (acc_rgb, acc_cov, hiding, hiding_next) per lane: what hides this
@@ -900,14 +906,25 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
             return lay.view(x, i_run)
 
         # the sources with this run's border; at reduced resolution as their 2 x 2 polyphase
-        # components (`_phases`, made once per run): every level's slice is then built from
-        # contiguous arrays and the first halving of its box average is a sum of the four
-        # (strided reads of the full-resolution fields cost ~2x per level on the CPU)
-        src = (padded(colour), padded(q), padded(alpha), [padded(x) for x in d_alpha],
-               padded(refl) if mirror else None, padded(q_r) if mirror else None,
-               padded(cover) if masked else None)
-        if s > 1:
-            src = jax.tree_util.tree_map(_phases, src)
+        # components (`_phases`): every level's slice is then built from contiguous arrays and
+        # the first halving of its box average is a sum of the four (strided reads of the
+        # full-resolution fields cost ~2x per level on the CPU). The phases of the whole padded
+        # frame are made once for every reduced-resolution run, each run cropping its border as
+        # it builds a slice: per-run copies (the near and far runs of one resolution shared
+        # theirs) were made before the full-resolution run and held through it (at 512 x 512
+        # the forward pass with a hidden layer had 33.7 MiB of temporaries, over glibc's 32 MiB
+        # mmap ceiling, so every call faulted them in; 25.2 MiB now; forward 0.82-0.90x the time)
+        o = lay.run_view(i_run)
+        if s > 1 and o % 2 == 0 and lay.border_px % 2 == 0:  # (blocks aligned with the image)
+            src = all_phases()
+            crop = o // 2
+        else:
+            src = (padded(colour), padded(q), padded(alpha), [padded(x) for x in d_alpha],
+                   padded(refl) if mirror else None, padded(q_r) if mirror else None,
+                   padded(cover) if masked else None)
+            if s > 1:
+                src = jax.tree_util.tree_map(_phases, src)
+            crop = 0
         xs = lay.level_table(i_run, dtype) + (ks, reached[np.asarray(ps)])
         each = range(colour.shape[0])
 
@@ -937,6 +954,9 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
         def build(src, q3, first, last):
             """The slice's fields (per lane: colour, coverage, occluders, ...) from the sources
             `src` (at reduced resolution each with its 2 x 2 phases on axis -3)."""
+            if crop:
+                src = jax.tree_util.tree_map(
+                    lambda x: x[..., crop: x.shape[-2] - crop, crop: x.shape[-1] - crop], src)
             colour_p, q_p, alpha_p, d_alpha_p, refl_p, q_r_p, cover_p = src
             # source by source, as (H, W) arrays summed written out: on the stacked (S, H, W)
             # sources XLA CPU compiled the weights into fusions several times slower per
