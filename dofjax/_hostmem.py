@@ -4,9 +4,9 @@ XLA's CPU runtime allocates a program's temporaries as one buffer per call (`mal
 when the call ends. glibc serves a request of more than 32 MiB (the largest mmap threshold it
 accepts) by a fresh `mmap` and unmaps it on `free`, so every call of such a program touches
 new pages and the kernel takes a page fault and zeroes each 4 KiB of them. At 512 x 512 that
-is most of dofjax's derivative programs and the sliced forward pass with a hidden layer (34 MB
-of temporaries: 8.6k faults per call), 8-15 % of their run time (benchmarks/README.md,
-"Defocus speed", session 34).
+is dofjax's derivative programs (`jax.jacfwd` 55 MiB of temporaries, 14k faults per call;
+`jax.grad` 77 MiB, 20k), 10-15 % of their run time (benchmarks/README.md, "Defocus speed",
+sessions 34 and 39; the forward passes, with a hidden layer too, stay below 32 MiB).
 
 `tune_host_memory` removes that cost in two steps: XLA splits the temporaries into heaps of at
 most `HEAP_BYTES` (`--xla_multiheap_size_constraint_per_heap`, read when JAX starts its CPU
@@ -63,7 +63,7 @@ def tune_host_memory() -> dict[str, bool]:
     Call once, before the first JAX computation of the process (the XLA part is read when
     JAX starts its backend). Opt-in: it changes the whole process's allocator (see the
     module docstring). Pays off for programs with more than 32 MiB of temporaries (at 512 x
-    512: `jax.jacfwd` / `jax.grad` of a defocus, the sliced forward pass with a hidden layer);
+    512: `jax.jacfwd` / `jax.grad` of a defocus);
     a 256 x 256 fit does not change.
 
     Returns:

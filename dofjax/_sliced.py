@@ -64,15 +64,16 @@ window is static); `dofjax.defocus(..., method="sliced")` is the validated entry
 derivatives
 w.r.t. (focus, aperture):
 - forward mode (`jax.jacfwd`, `jax.jvp`, the fitter's Jacobian): `sliced_defocus_jacobian`, the
-  same pass carrying two tangents beside the image (~3x a forward pass; `jax.jacfwd` through
-  the plain model took ~4.4x);
+  same pass carrying two tangents beside the image (2.8x a forward pass at 512 x 512 with
+  `tune_host_memory`, 3.1-3.3x without, where every call faults in its 55 MiB of temporaries;
+  `jax.jacfwd` through the plain model took ~4.4x);
 - reverse mode (`jax.grad`, `jax.vjp`): `sliced_defocus_adjoint`, the transpose of those
   tangent lanes written out (`_composite_adjoint`: the scans run back to front, each blur by
   its point-reflected kernel, each resampling by its transpose) from the value lane's per-slice
-  residuals (what hid the slice, its blurred colour and coverage): the value pass (~1.4-1.5x a
-  forward pass: it stores the residuals) plus ~1.25x, 2.9-3.0x in all at 512 x 512 (2.4x at
-  256 x 256, where no call faults in fresh memory) instead of J's 3x plus the contraction
-  (3.05-3.3x; `benchmarks/README.md`, "Defocus speed").
+  residuals (what hid the slice, its blurred colour and coverage): the value pass (~1.5x a
+  forward pass: it stores the residuals) plus ~1.3-1.4x, 2.8x in all at 512 x 512 with
+  `tune_host_memory` (3.1-3.3x without; 2.4x at 256 x 256, where no call faults in fresh
+  memory) instead of J's cost plus the contraction (`benchmarks/README.md`, "Defocus speed").
   `_autodiff.dense_jacobian` routes the two modes (a primitive whose transpose is the adjoint).
 """
 
