@@ -234,27 +234,25 @@ def _phases(x):
 def _upsample(x, s: int):
     """Bilinear s-fold upsampling of the last two axes (the inverse grid of `_downsample`; the
     mean is kept; edges replicated). Fine sample s i + k sits at coarse i + d_k,
-    d_k = (k + 1/2) / s - 1/2, and blends sample i with its neighbour on d_k's side, along
-    both axes at once: the s x s phases are four-tap blends of the edge-padded input,
-    interleaved by a reshape (no gather: ~3x faster on the CPU; one pass per axis, each with
-    its own pad and interleave, took twice as long)."""
+    d_k = (k + 1/2) / s - 1/2, and blends sample i with its neighbour on d_k's side; the s phases
+    are interleaved by a reshape (no gather: ~3x faster on the CPU). Both axes in one pass (the
+    s x s phases as four-tap blends of one edge-padded input) made the 512 x 512 forward pass
+    0.87x the time before the polyphase sources were shared and 0.99x after, for ~20 % longer
+    compiles (benchmarks/README.md, "Defocus speed", session 39)."""
     if s == 1:
         return x
-    h, w = x.shape[-2:]
-    p = jnp.pad(x, ((0, 0),) * (x.ndim - 2) + ((1, 1), (1, 1)), mode="edge")
-    d = [(k + 0.5) / s - 0.5 for k in range(s)]
-    rows = []
-    for dy in d:
-        a, oy = abs(dy), (0 if dy < 0 else 2)
-        cols = []
-        for dx in d:
-            b, ox = abs(dx), (0 if dx < 0 else 2)
-            cols.append(_window(p, 1, 1, h, w) * ((1.0 - a) * (1.0 - b))
-                        + _window(p, oy, 1, h, w) * (a * (1.0 - b))
-                        + _window(p, 1, ox, h, w) * ((1.0 - a) * b)
-                        + _window(p, oy, ox, h, w) * (a * b))
-        rows.append(jnp.stack(cols, axis=-1))  # (..., h, w, s): the column phases
-    return jnp.stack(rows, axis=-3).reshape(x.shape[:-2] + (h * s, w * s))
+    for axis in (x.ndim - 2, x.ndim - 1):
+        n = x.shape[axis]
+        pad = [(0, 0)] * x.ndim
+        pad[axis] = (1, 1)
+        p = jnp.pad(x, pad, mode="edge")
+        prev, mid, nxt = (jax.lax.slice_in_dim(p, o, o + n, axis=axis) for o in range(3))
+        phases = []
+        for k in range(s):
+            d = (k + 0.5) / s - 0.5
+            phases.append(mid * (1.0 - abs(d)) + (prev if d < 0 else nxt) * abs(d))
+        x = jnp.stack(phases, axis=axis + 1).reshape(x.shape[:axis] + (n * s,) + x.shape[axis + 1:])
+    return x
 
 
 def _window(x, a: int, b: int, h: int, w: int):
@@ -956,8 +954,8 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
             """The slice's fields (per lane: colour, coverage, occluders, ...) from the sources
             `src` (at reduced resolution each with its 2 x 2 phases on axis -3)."""
             if crop:
-                src = jax.tree_util.tree_map(
-                    lambda x: x[..., crop: x.shape[-2] - crop, crop: x.shape[-1] - crop], src)
+                src = jax.tree_util.tree_map(lambda x: _window(
+                    x, crop, crop, x.shape[-2] - 2 * crop, x.shape[-1] - 2 * crop), src)
             colour_p, q_p, alpha_p, d_alpha_p, refl_p, q_r_p, cover_p = src
             # source by source, as (H, W) arrays summed written out: on the stacked (S, H, W)
             # sources XLA CPU compiled the weights into fusions several times slower per
