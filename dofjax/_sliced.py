@@ -64,15 +64,15 @@ window is static); `dofjax.defocus(..., method="sliced")` is the validated entry
 derivatives
 w.r.t. (focus, aperture):
 - forward mode (`jax.jacfwd`, `jax.jvp`, the fitter's Jacobian): `sliced_defocus_jacobian`, the
-  same pass carrying two tangents beside the image (2.8x a forward pass at 512 x 512 with
-  `tune_host_memory`, 3.1-3.3x without, where every call faults in its 55 MiB of temporaries;
+  same pass carrying two tangents beside the image (2.9x a forward pass at 512 x 512 with
+  `tune_host_memory`, 2.9-3.2x without, where every call faults in its 55 MiB of temporaries;
   `jax.jacfwd` through the plain model took ~4.4x);
 - reverse mode (`jax.grad`, `jax.vjp`): `sliced_defocus_adjoint`, the transpose of those
   tangent lanes written out (`_composite_adjoint`: the scans run back to front, each blur by
   its point-reflected kernel, each resampling by its transpose) from the value lane's per-slice
   residuals (what hid the slice, its blurred colour and coverage): the value pass (~1.5x a
-  forward pass: it stores the residuals) plus ~1.3-1.4x, 2.8x in all at 512 x 512 with
-  `tune_host_memory` (3.1-3.3x without; 2.4x at 256 x 256, where no call faults in fresh
+  forward pass: it stores the residuals) plus ~1.3-1.4x, 2.75x in all at 512 x 512 with
+  `tune_host_memory` (2.9-3.2x without; 2.4x at 256 x 256, where no call faults in fresh
   memory) instead of J's cost plus the contraction (`benchmarks/README.md`, "Defocus speed").
   `_autodiff.dense_jacobian` routes the two modes (a primitive whose transpose is the adjoint).
 """
@@ -912,7 +912,7 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
         # it builds a slice: per-run copies (the near and far runs of one resolution shared
         # theirs) were made before the full-resolution run and held through it (at 512 x 512
         # the forward pass with a hidden layer had 33.7 MiB of temporaries, over glibc's 32 MiB
-        # mmap ceiling, so every call faulted them in; 25.2 MiB now; forward 0.82-0.90x the time)
+        # mmap ceiling, so every call faulted them in: 25.2 MiB now, 0.79x the time)
         o = lay.run_view(i_run)
         if s > 1 and o % 2 == 0 and lay.border_px % 2 == 0:  # (blocks aligned with the image)
             src = all_phases()
