@@ -789,6 +789,7 @@ def _layout(window, blades, rotation, ratio, min_radius, height, width, cell=Non
     by_shifts = [shifted[ps[0]] for ps in runs]
     borders = [k // 2 if sh else 0 for k, sh in zip(sizes, by_shifts)]
     border_px = max(factors[ps[0]] * b for ps, b in zip(runs, borders))
+    border_px += border_px % 2  # even: the padded frame's 2 x 2 phases align with the image's
     return _Layout(levels, factors, kernels, runs, by_shifts, borders, border_px, height, width,
                    -(-height // s_max) * s_max, -(-width // s_max) * s_max)
 
@@ -913,16 +914,12 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
         # theirs) were made before the full-resolution run and held through it (at 512 x 512
         # the forward pass with a hidden layer had 33.7 MiB of temporaries, over glibc's 32 MiB
         # mmap ceiling, so every call faulted them in: 25.2 MiB now, 0.79x the time)
-        o = lay.run_view(i_run)
-        if s > 1 and o % 2 == 0 and lay.border_px % 2 == 0:  # (blocks aligned with the image)
-            src = all_phases()
-            crop = o // 2
+        if s > 1:  # (the run's view starts at an even offset: `_layout`'s border_px is even)
+            src, crop = all_phases(), lay.run_view(i_run) // 2
         else:
             src = (padded(colour), padded(q), padded(alpha), [padded(x) for x in d_alpha],
                    padded(refl) if mirror else None, padded(q_r) if mirror else None,
                    padded(cover) if masked else None)
-            if s > 1:
-                src = jax.tree_util.tree_map(_phases, src)
             crop = 0
         xs = lay.level_table(i_run, dtype) + (ks, reached[np.asarray(ps)])
         each = range(colour.shape[0])
