@@ -4,6 +4,7 @@
                              [--eye X Y Z] [--target X Y Z] [--up X Y Z] [--spp N] [--layers K]
                              [--reference [--seed S]] -o OUT.exr [--png OUT.png] [--exposure EV]
     dofjax info FILE.exr
+    dofjax view SCENE.json|SHARP.exr|DATASET [--target FILE] [--port P] [--host H] [--open]
 
 `render` takes the camera from the scene file's "camera" section (`dofjax.load_camera`); every flag
 overrides one field of it. It writes RGB + Z (+ the mirror layer `reflection.*`,
@@ -308,6 +309,51 @@ def _run_info(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------------------------
+# dofjax view
+
+
+def _configure_view(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", help="scene file (.json), sharp RGB-D EXR with Z, or a data_gen data "
+                   "set (directory or manifest.jsonl, with --sample) or sample record (.json)")
+    p.add_argument("--target", metavar="FILE", help="image to fit the camera to (EXR, PNG, ...)")
+    p.add_argument("--port", type=int, default=0, help="port (default: a free one)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1: this machine only)")
+    p.add_argument("--open", action="store_true", help="open the page in the system browser")
+    p.add_argument("--width", type=int, metavar="W", help="scene files: image width, pixels")
+    p.add_argument("--height", type=int, metavar="H", help="scene files: image height, pixels")
+    p.add_argument("--layers", type=int, metavar="K", help="scene files: K depth-peeled layers")
+    p.add_argument("--spp", type=int, default=1, help="scene files: samples per pixel of the "
+                   "sharp render (default 1)")
+    p.add_argument("--sample", type=int, metavar="N", help="data sets: the sample index (0)")
+    p.add_argument("--window", type=float, metavar="PX", help="largest |CoC| in pixels (sets "
+                   "the aperture slider's end; default from the input camera, 8 to 32)")
+    p.add_argument("--max-upload-mb", type=float, default=64.0,
+                   help="largest target upload, MiB (default 64)")
+
+
+def _run_view(args: argparse.Namespace) -> int:
+    from ._viewer import serve
+
+    if not 0 <= args.port <= 65535:
+        raise ValueError(f"--port: must be in 0..65535, got {args.port}")
+    for flag in ("width", "height", "layers", "sample"):
+        value = getattr(args, flag)
+        if value is not None and value < (0 if flag == "sample" else 1):
+            raise ValueError(f"--{flag}: must be >= {0 if flag == 'sample' else 1}, got {value}")
+    if args.spp < 1:
+        raise ValueError(f"--spp: must be >= 1, got {args.spp}")
+    if args.window is not None and not args.window > 0:
+        raise ValueError(f"--window: must be > 0, got {args.window}")
+    if not args.max_upload_mb > 0:
+        raise ValueError(f"--max-upload-mb: must be > 0, got {args.max_upload_mb}")
+    return serve(args.input, host=args.host, port=args.port, open_browser=args.open,
+                 target=args.target, width=args.width, height=args.height, layers=args.layers,
+                 spp=args.spp, sample=args.sample, window=args.window,
+                 max_upload=int(args.max_upload_mb * 2**20))
+
+
+# ---------------------------------------------------------------------------------------------
 # Registry and entry point.
 
 SUBCOMMANDS: list[Subcommand] = [
@@ -322,6 +368,12 @@ SUBCOMMANDS: list[Subcommand] = [
         "describe an EXR file: size, channels, ranges, metadata",
         _configure_info,
         _run_info,
+    ),
+    Subcommand(
+        "view",
+        "refocus live in the browser, compare with the lens reference, fit a photograph",
+        _configure_view,
+        _run_view,
     ),
 ]
 
