@@ -63,7 +63,7 @@ def encode(rgb_or_srgb8: np.ndarray, fmt: str, *, linear: bool = True, exposure:
         pixels = np.asarray(rgb_or_srgb8, np.uint8)
     out = io.BytesIO()
     if fmt == "jpeg":
-        Image.fromarray(pixels).save(out, format="JPEG", quality=quality)
+        Image.fromarray(pixels).save(out, format="JPEG", quality=quality, subsampling=0)
     else:
         Image.fromarray(pixels).save(out, format="PNG", compress_level=1)
     return out.getvalue()
@@ -204,6 +204,7 @@ class Engine:
 
     def start_reference(self, focus: float, aperture: float, bokeh: Bokeh, spp: int,
                         seed: int = 0) -> None:
+        self.reference.check_idle()
         if self.source.scene is None:
             raise ValueError("no scene: the reference ray traces the scene, and this input is an "
                              "RGB-D image (start the viewer with a scene file or data_gen sample)")
@@ -245,6 +246,7 @@ class Engine:
         self.target_name = name
 
     def start_fit(self, focus: float, aperture: float, bokeh: Bokeh) -> None:
+        self.fit.check_idle()
         if self.target is None:
             raise ValueError("no target image: load one (the file button, or --target FILE)")
         self.check_camera(focus, aperture)
@@ -302,6 +304,10 @@ class Job:
 
     def progress(self, done: int, total: int) -> None:
         self.done, self.total = int(done), int(total)
+
+    def check_idle(self) -> None:
+        if self.state == "running":
+            raise RuntimeError(f"a {self.name} is already running")
 
     def start(self, work: Callable[[Job], dict]) -> None:
         with self._lock:
