@@ -66,3 +66,26 @@ def code_hash(sources: tuple[str, ...] = RENDERER_SOURCES) -> str:
             with open(path, encoding="utf-8") as f:
                 h.update(_code_of(f.read()).encode())
     return h.hexdigest()[:16]
+
+
+def timed(fn, runs: int, slow: float | None = None):
+    """(result, median seconds over `runs` calls after a warm-up call, compile seconds (first
+    call minus median), all timed seconds), blocking on every result. With `slow`, a call
+    slower than `slow` seconds is timed once (the median of one)."""
+    import statistics
+    import time
+
+    import jax
+
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn())
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+        if slow is not None and times[-1] > slow:
+            break
+    med = statistics.median(times)
+    return out, med, max(first - med, 0.0), times
