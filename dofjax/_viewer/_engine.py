@@ -28,6 +28,10 @@ from ._source import Source, check_target
 LIVE_METHOD: str | None = None
 FINAL_METHOD: str | None = None
 
+# Difference and residual pictures span +-max|difference|, at least +-1 % of white: a match to
+# rounding is shown white, not as amplified noise.
+_MIN_SCALE = 0.01
+
 # Compiled defocus programs kept (one per method and bokeh): a new bokeh compiles once.
 _PROGRAMS = 6
 
@@ -226,7 +230,7 @@ class Engine:
             post_seconds = time.perf_counter() - start
             diff = post - ref
             rmse = float(np.sqrt(np.mean(diff.astype(np.float64) ** 2)))
-            scale = max(float(np.max(np.abs(diff))), 1e-12)
+            scale = max(float(np.max(np.abs(diff))), _MIN_SCALE)
             return {
                 "focus": focus, "aperture": aperture, "spp": spp, "bokeh": bokeh.describe(),
                 "rmse": rmse, "reference_seconds": ref_seconds,
@@ -272,7 +276,7 @@ class Engine:
                 predicted = np.asarray(model(self.source.rgb, self.source.depth,
                                              self.camera_at(d, a)))
             residual = np.asarray(target, np.float64) - predicted
-            scale = max(float(np.max(np.abs(residual))), 1e-12)
+            scale = max(float(np.max(np.abs(residual))), _MIN_SCALE)
             return {
                 "focus": d, "aperture": a,
                 "focus_se": float(r.focus_distance_se), "aperture_se": float(r.aperture_radius_se),
