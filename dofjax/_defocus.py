@@ -76,6 +76,7 @@ from jaxtyping import Array, ArrayLike
 
 from ._autodiff import dense_jacobian, tracing_forward_only
 from ._camera import Camera, _is_concrete, check_camera, check_margin, check_single
+from ._exact import exact_defocus, plan as exact_plan
 from ._hidden import hidden_layer, hidden_layers
 from ._kernels import (
     MAX_WINDOW,
@@ -100,7 +101,7 @@ from ._sliced import (
     sliced_defocus_jacobian,
 )
 
-METHODS = ("pyramid", "sliced", "lens")
+METHODS = ("exact", "sliced", "pyramid", "lens")
 # Most sub-apertures `defocus(..., subapertures=K)` takes: each adds a blur and a compositing
 # step per slice (and their compiled code); on the lens-reference scenes the error stops
 # falling at 4-8.
@@ -502,7 +503,7 @@ def _with_hidden(rgb, depth, reflection, layers, window, method, hidden):
     """`layers` for the sliced method with the hidden-background estimate (single-layer input
     and `hidden`): `_hidden.hidden_layers`, a function of the images alone, so it is made once
     per image (`defocus_fn`) and differentiated like peeled layers."""
-    if method == "sliced" and hidden and layers is None:
+    if method in ("exact", "sliced") and hidden and layers is None:
         return hidden_layers(rgb, depth, window, reflection)
     return layers
 
@@ -518,6 +519,17 @@ def _run(rgb, depth, camera, reflection, reflection_depth, layers, window, blade
                            ratio=ratio, reflection=reflection, reflection_depth=reflection_depth,
                            layers=layers, samples=LENS_SAMPLES if samples is None else int(samples),
                            hidden=hidden, mirror=mirror)
+        return out, None
+    if method == "exact":  # plain autodiff through its scans
+        layers = _with_hidden(rgb, depth, reflection, layers, window, "exact", hidden)
+        opts = dict(window=window, blades=blades, rotation=rotation, ratio=ratio)
+        out = exact_defocus(rgb, depth, camera, reflection=reflection,
+                            reflection_depth=reflection_depth, layers=layers, mirror=mirror, **opts)
+        if mirror is not None:  # the virtual scene: its own single-layer RGB-D
+            v_layers = _with_hidden(mirror.radiance, mirror.depth, None, None, window, "exact",
+                                    hidden)
+            out = _confine(out, exact_defocus(mirror.radiance, mirror.depth, camera,
+                                              layers=v_layers, **opts))
         return out, None
     if method == "sliced":
         # the hidden-background estimates, made once for every sub-aperture
@@ -677,10 +689,10 @@ def as_mirror(name: str, mirror, dtype) -> Mirror | None:
 
 def check_hidden(name: str, hidden, method: str, layers=None) -> bool:
     """The hidden-background estimate's switch: None is the method's default (on for "pyramid"
-    and "lens", off for "sliced", the default, so that it is the fitter's model); True needs
-    single-layer input (peeled layers are the real hidden surfaces)."""
+    and "lens", off for "exact", the default, and "sliced", so that a bare call is the fitter's
+    model); True needs single-layer input (peeled layers are the real hidden surfaces)."""
     if hidden is None:
-        return method != "sliced"
+        return method not in ("exact", "sliced")
     if not isinstance(hidden, (bool, np.bool_)):
         raise ValueError(f"{name}: hidden must be True, False or None, got {hidden!r}")
     if hidden and layers is not None:
@@ -791,7 +803,7 @@ def defocus(
     mirror: Mirror | None = None,
     window: float | None = None,
     return_info: bool = False,
-    method: str = "sliced",
+    method: str = "exact",
     samples: int | None = None,
     margin: int = 0,
     hidden: bool | None = None,
@@ -955,6 +967,7 @@ def defocus(
     out = run(rgb, depth, camera, reflection, reflection_depth, layers, mirror, **static)
     if return_info:
         n = (len(lens_levels(win)) if method == "lens"
+             else len(exact_plan(win, blades, rotation, ratio).levels) if method == "exact"
              else len(make_plan(win, blades, rotation, ratio).levels))
         return out, DefocusInfo(reported, win / s, False, clamped, n)
     return out
@@ -973,7 +986,7 @@ def defocus_fn(
     reflection: ArrayLike | None = None,
     reflection_depth: ArrayLike | None = None,
     layers: Layers | None = None,
-    method: str = "sliced",
+    method: str = "exact",
     samples: int | None = None,
     margin: int = 0,
     hidden: bool | None = None,
