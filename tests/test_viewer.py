@@ -20,7 +20,7 @@ from starlette.testclient import TestClient
 
 import dofjax
 from dofjax import _cli
-from dofjax._viewer import Bokeh, Engine, create_app, load_source
+from dofjax._viewer import Bokeh, Engine, _engine, create_app, load_source
 from dofjax._viewer._app import FrameGate
 from dofjax._viewer._engine import encode
 
@@ -117,6 +117,11 @@ def test_frame_is_the_library_defocus(client, engine):
     brighter = _decode(client.get("/api/frame", params=dict(focus=d, aperture=a,
                                                             exposure=1)).content)
     assert brighter.mean() > got.mean() + 5
+    # while a slider moves: the live method (exact only if it is the final one), close to it
+    live = client.get("/api/frame", params=dict(focus=d, aperture=a, quality="live"))
+    exact = _engine.LIVE_METHOD == _engine.FINAL_METHOD
+    assert live.headers["x-dofjax-exact"] == ("1" if exact else "0")
+    assert np.abs(_decode(live.content) - got).mean() < 0.5 * np.abs(other - srgb).mean()
 
 
 def test_overlays(client, engine):

@@ -25,7 +25,7 @@ from ._source import Source, check_target
 
 # The defocus methods, in one place: LIVE while a slider moves (the fastest the library offers),
 # FINAL when it rests (None: the library's default, the exact model). Equal: no refinement.
-LIVE_METHOD: str | None = None
+LIVE_METHOD: str | None = "sliced"
 FINAL_METHOD: str | None = None
 
 # Difference and residual pictures span +-max|difference|, at least +-1 % of white: a match to
