@@ -12,6 +12,7 @@ overrides one field of it. It writes RGB + Z (+ the mirror layer `reflection.*`,
 present, see `dofjax.write_rgbd`) with the
 camera and render parameters as `dofjax:<name>` metadata, and optionally an sRGB PNG preview.
 `info` prints an EXR's resolution, channels, depth and colour ranges and its dofjax metadata.
+`view` serves the browser viewer (`dofjax._viewer`, docs/viewer.md) until Ctrl-C.
 
 Errors a user can fix (ValueError, FileNotFoundError, OSError) are printed as
 `dofjax: error: <message>` on stderr with exit status 2, without a traceback; argparse usage errors
