@@ -1027,12 +1027,12 @@ class DefocusModel:
     Attributes:
         window: the largest |CoC| (px) supported; larger |c| is clamped to it by the defocus.
         shape, blades, rotation, ratio: aperture shape, as `dofjax.defocus`.
-        method: "sliced" (default: depth slices and FFT products in one `lax.scan`, which
-            compiles in seconds), "pyramid" or "lens" (occlusion per lens ray: closest to a real
-            lens behind blurred edges, ~3000x slower), as `dofjax.defocus(..., method=...)`.
+        method: "exact" (default: every source's own kernel), "sliced" (two kernels per
+            octave, reduced resolution for large blurs: fast, approximate between levels),
+            "pyramid" or "lens" (occlusion per lens ray), as `dofjax.defocus(..., method=...)`.
         samples: lens points per pixel of method "lens" (None: 256), as `dofjax.defocus`.
         hidden: the hidden-background estimate for single-layer input, as `dofjax.defocus`
-            (None: the method's default, off for "sliced").
+            (None: the method's default, off for "exact" and "sliced").
         subapertures: sectors of the aperture the sliced method composites apart, as
             `dofjax.defocus` (1: the whole aperture at once).
     """
@@ -1042,7 +1042,7 @@ class DefocusModel:
     blades: int | None = None
     rotation: float = 0.0
     ratio: float = 1.0
-    method: str = "sliced"
+    method: str = "exact"
     samples: int | None = None
     hidden: bool | None = None
     subapertures: int = 1
@@ -1646,11 +1646,11 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
             depth_a, _upsample(weight, s, band, 1.0), extras, float(camera.pixel_scale),
             (u_lo, u_hi), a_bounds[1], max_window, s)
         base = DefocusModel(window=float(max(win, 1.0)), **(defocus_options or {}))
-        # the lens method and sub-apertures only polish: their minimum lies in the plain
-        # sliced model's basin, and a search with them would cost ~1000x (lens) or K x as much
-        # and compile K copies at every level (see defocus_options)
+        # the exact and lens methods and sub-apertures only polish: their minimum lies in the
+        # plain sliced model's basin, and a search with them would cost several times (exact),
+        # ~1000x (lens) or K x as much and compile K copies at every level (defocus_options)
         search = (dataclasses.replace(base, method="sliced", samples=None, subapertures=1)
-                  if base.method == "lens" or base.subapertures > 1 else base)
+                  if base.method in ("exact", "lens") or base.subapertures > 1 else base)
         # the polish's on a supersampled sharp input: CoCs in its s times smaller pixels
         model = dataclasses.replace(base, window=base.window * s) if s > 1 else base
         level_models = tuple(dataclasses.replace(search, window=max(search.window / g, 1.0))
@@ -1920,10 +1920,10 @@ def fit_focus(
             defocus clamps). The multi-start level uses window / 2^L.
         defocus_options: shape/blades/rotation/ratio/method/samples/hidden/subapertures passed to
             `dofjax.defocus` ({"hidden": True}: the hidden-background estimate of single-layer
-            input also for "sliced", ~1.5x its cost per step). The defaults are
-            `dofjax.defocus`'s ("sliced", no hidden-background estimate), so a target made
-            with a bare `dofjax.defocus(...)` is the model a bare fit fits; pass the same
-            options to both. For photographs (or lens-sampled targets) of an RGBD with peeled
+            input, ~1.5x its cost per step). The defaults are `dofjax.defocus`'s ("exact", no
+            hidden-background estimate), so a target made with a bare `dofjax.defocus(...)` is
+            the model a bare fit fits; pass the same options to both. The exact model
+            polishes only: the multi-start, scan and screen run with "sliced". For photographs (or lens-sampled targets) of an RGBD with peeled
             layers, {"method": "lens"} is the model closest to a real lens (relative mismatch
             at the true camera 0.022 vs the sliced model's 0.035, median of the
             lens-reference cases in benchmarks/README.md); it polishes only: the multi-start,
