@@ -1,7 +1,7 @@
 """Accuracy of dofjax.defocus by region against the lens-sampling reference, on scenes the
 methods were not tuned on (issue 46, item 2).
 
-    python benchmarks/defocus_regions.py            # 4 scenes x 3 cases, 256x256, reference 4096 spp
+    python benchmarks/defocus_regions.py            # 4 scenes x 3 cases, 256 px, 4096 spp
     python benchmarks/defocus_regions.py --quick    # smoke run: 64 px, 256 spp, one case per scene
     python benchmarks/defocus_regions.py --scenes ground_receding --methods sliced
 
@@ -76,6 +76,7 @@ CASES = {
     ],
 }
 LENS_SAMPLES = 64
+SCALE_LAYERS = 3  # peeled layers of the render whose largest |c| sets a case's aperture
 
 
 def scene_path(name):
@@ -93,15 +94,16 @@ def max_abs_coc(rgbd, cam) -> float:
                for d in depths)
 
 
-def case_camera(scene, base, size, focus, max_coc, layers):
+def case_camera(scene, base, size, focus, max_coc):
     """(camera, margin): `base` at `size` px wide focused at `focus`, its aperture scaled so the
-    largest |c| over the guard-band render (margin = ceil(max_coc) + 2) is `max_coc`."""
+    largest |c| over the guard-band render (margin = ceil(max_coc) + 2, `SCALE_LAYERS` peeled
+    layers) is `max_coc`."""
     h = max(1, round(size * base.height / base.width))
     cam = dofjax.Camera(width=size, height=h, fov=base.fov, focus_distance=focus,
                         aperture_radius=base.aperture_radius, eye=base.eye, target=base.target,
                         up=base.up)
     margin = math.ceil(max_coc) + 2
-    sharp = dofjax.render(scene, cam.padded(margin), spp=1, layers=layers)
+    sharp = dofjax.render(scene, cam.padded(margin), spp=1, layers=SCALE_LAYERS)
     c = max_abs_coc(sharp, cam)
     return cam.replace(aperture_radius=float(cam.aperture_radius) * max_coc / c), margin
 
@@ -173,7 +175,7 @@ def variants(args, lens_case):
 def run_case(name, scene, base, case, args, bar):
     label, focus, max_coc, lens_case = case
     max_coc = max_coc * args.size / 256
-    cam, margin = case_camera(scene, base, args.size, focus, max_coc, args.layers)
+    cam, margin = case_camera(scene, base, args.size, focus, max_coc)
     path = scene_path(name)
     halves = []
     for seed in (0, 1):

@@ -1,34 +1,41 @@
-"""Run time versus error: every defocus method, the seed's algorithm and lens sampling, measured
-against a high-spp lens-sampling ground truth (issue 4; DESIGN.md section 4).
+"""Run time versus error: every defocus method and option, the seed's algorithm and lens
+sampling, measured against a high-spp lens-sampling ground truth (DESIGN.md section 4).
 
-    python benchmarks/time_vs_error.py                       # default: 64x64, truth 4096 spp
-    python benchmarks/time_vs_error.py --size 128 --scenes occluders,mirror
-    python benchmarks/time_vs_error.py --methods sliced --sharp-spp 16 --layers 3
+    python benchmarks/time_vs_error.py                # defocus_regions.py's 4 scenes, 256x256
+    python benchmarks/time_vs_error.py --suite small  # SETTINGS' 5 scenes x 2 settings, 64x64
+    python benchmarks/time_vs_error.py --suite small --size 128 --scenes occluders,mirror
 
 Scenes are the JSON files in benchmarks/scenes/ (their camera sections give the pose and field of
-view; `SETTINGS` below gives the focus/aperture/shape settings of each). For every scene setting:
+view). `--suite regions` (default): the scenes of defocus_regions.py, one setting each (its case
+that runs the lens method: the aperture scaled so the largest |c| is 12 px at 256 px), at 256x256,
+lens sampling at 16..4096 spp; `--suite small`: the five scenes of `SETTINGS` (focus/aperture/shape
+given there), two settings each, at 64x64, lens sampling at 1..1024 spp. For every setting:
 
 - ground truth: `dofjax.render_reference` at --truth-spp (default 4096) spp, cached on disk under
   benchmarks/results/cache/ (keyed by scene file contents, setting, size, spp and the renderer's
-  code, `_common.code_hash`);
-- methods: `dofjax.defocus` with each of --methods (pyramid, sliced, sliced+hidden, lens) on a
-  `dofjax.render` at each --sharp-spp (4, 16) with a guard band (`Camera.padded`), single layer
-  and K peeled layers (--layers, 3), mirrors confined to their footprint (`RGBD.mirror`); where
-  the scene has mirrors, also the reflection blurred at the mirror's depth (the seed's listed
-  inaccuracy); the seed's algorithm (`seed_defocus`, the "before" row); and `render_reference`
-  at --spps (1, 4, ..., 1024);
-- timing: median of --runs (>= 5) calls after one warm-up call, with the compile time (first call
-  minus median) separate, `block_until_ready` on every result; defocus is reported alone and as a
-  pipeline (sharp render + defocus), and forward + reverse-mode gradient of an image loss with
-  respect to (focus distance, aperture) for the --grad-methods (default the sliced ones: the
-  others' gradient programs take 15 s and more to compile at every setting). Lens sampling is
-  timed on the first setting of each scene (its cost does not depend on focus or aperture) and
-  its error measured on every setting.
+  code, `_common.code_hash`); for the regions suite the two halves of defocus_regions.py
+  (`defocus_accuracy.reference_half`, the same cache files), whose difference gives its noise;
+- methods: `dofjax.defocus` with each of --methods (regions: pyramid, sliced, sliced+hidden,
+  sliced+sub4, sliced+sub8, lens+hidden with 64 lens points; small: pyramid, sliced,
+  sliced+hidden, lens) on a `dofjax.render` at each --sharp-spp (regions 16; small 4, 16) with a
+  guard band (`Camera.padded`), single layer and K peeled layers (--layers, 3; not for +hidden
+  tokens), mirrors confined to their footprint (`RGBD.mirror`); where the scene has mirrors,
+  also the reflection blurred at the mirror's depth (the seed's listed inaccuracy); the seed's
+  algorithm (`seed_defocus`, the "before" row); and `render_reference` at --spps;
+- timing: median of --runs (>= 5) calls after one warm-up call (a call over 2 s is timed
+  once), with the compile time (first call minus median) separate, `block_until_ready` on every
+  result; defocus is reported alone and as a pipeline (sharp render + defocus), and forward +
+  reverse-mode gradient of an image loss with respect to (focus distance, aperture) for the
+  --grad-methods (default the sliced ones: the others' gradient programs take 15 s and more to
+  compile at every setting). Lens sampling is timed on the first setting of each scene (its cost
+  does not depend on focus or aperture), its error measured on every setting; its images and
+  times are cached (`lens_rows`).
 - error: RMSE, PSNR and SSIM (scikit-image; data range 1 = white) against the truth, on linear
   colours (HDR values above 1 count fully).
 
-Writes benchmarks/results/time_vs_error.{md,json,png} and prints the table and the headline: "to
-match defocus's error, lens sampling needs N times the time"."""
+Writes benchmarks/results/time_vs_error.{md,json,png} (one panel per setting, time on x, RMSE on
+y, log-log) and prints the table and the headline: "to match defocus's error, lens sampling needs
+N times the time", and how each method compares with lens sampling at 256 spp."""
 
 from __future__ import annotations
 
@@ -43,10 +50,12 @@ import sys
 import time
 from pathlib import Path
 
+import defocus_regions
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import code_hash, method_options
+from _common import code_hash, method_options, timed
+from defocus_accuracy import reference_half
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 import dofjax
@@ -78,24 +87,26 @@ SETTINGS = {
         dict(name="focus 1.5", focus=1.5, aperture=0.06),
     ],
 }
+# The scenes of defocus_regions.py, one setting each: its case that runs the lens method (the
+# aperture scaled so the largest |c| is `max_coc` px at 256 px wide), so the two scripts share
+# the cached reference halves.
+for _name, _cases in defocus_regions.CASES.items():
+    _label, _focus, _coc, _ = next(c for c in _cases if c[3])
+    SETTINGS[_name] = [dict(name=_label, focus=_focus, max_coc=_coc)]
+# --suite: its scenes and the defaults of the options it leaves out
+SUITES = {
+    "regions": dict(scenes=list(defocus_regions.CASES), size=256, spps="16,64,256,1024,4096",
+                    sharp_spp="16", methods="pyramid,sliced,sliced+hidden,sliced+sub4,"
+                    "sliced+sub8,lens+hidden", lens_samples=64),
+    "small": dict(scenes=["plane", "occluders", "mirror", "highlights", "depth_range"], size=64,
+                  spps="1,4,16,64,256,1024", sharp_spp="4,16",
+                  methods="pyramid,sliced,sliced+hidden,lens", lens_samples=None),
+}
+LENS_KEY = 2  # lens-sampling rows: a PRNG key apart from the ground truths' (0, and 1 for halves)
 
 
 def _block(x):
     return jax.block_until_ready(x)
-
-
-def timed(fn, runs: int):
-    """(result, median seconds over `runs` calls after a warm-up, compile seconds, all times)."""
-    t0 = time.perf_counter()
-    out = _block(fn())
-    first = time.perf_counter() - t0
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        out = _block(fn())
-        times.append(time.perf_counter() - t0)
-    med = statistics.median(times)
-    return out, med, max(first - med, 0.0), times
 
 
 def metrics(img, truth) -> dict:
@@ -182,16 +193,21 @@ def defocus_rows(scene, cam, truth, setting, args) -> list[dict]:
     gathers what lies just beyond the frame, as the lens does. *pipeline* = that render (with
     its layers and mirror channels) + the defocus call."""
     shape = setting.get("shape", {})
-    margin = math.ceil(max_abs_coc(dofjax.render(scene, cam), cam)) + 2
+    if "margin" in setting:  # the window and guard band of defocus_regions.py's cases
+        margin, fixed = setting["margin"], dict(window=setting["window"])
+    else:
+        margin, fixed = math.ceil(max_abs_coc(dofjax.render(scene, cam), cam)) + 2, {}
     pcam = cam.padded(margin)
     truth_j = jnp.asarray(truth, dtype=jnp.float32)
-    d0 = jnp.asarray(setting["focus"], jnp.float32)
-    a0 = jnp.asarray(setting["aperture"], jnp.float32)
+    d0 = jnp.asarray(cam.focus_distance, jnp.float32)
+    a0 = jnp.asarray(cam.aperture_radius, jnp.float32)
     rows = []
     for sharp_spp in args.sharp_spp:
         renders = {}  # K -> (RGBD, time, compile): one render per layer count
         for label, token, layers in variants(args):
-            opts = method_options(token)
+            opts = dict(method_options(token), **fixed)
+            if opts["method"] == "lens" and args.lens_samples:
+                opts["samples"] = args.lens_samples
             if layers not in renders:
                 renders[layers] = timed(
                     lambda k=layers, n=sharp_spp: dofjax.render(scene, pcam, spp=n, layers=k),
@@ -205,8 +221,9 @@ def defocus_rows(scene, cam, truth, setting, args) -> list[dict]:
             if token in args.grad_methods:
                 # forward + reverse-mode gradient of an image loss w.r.t. (focus, aperture),
                 # through the jittable entry point with the window the forward call chose
-                f = dofjax.defocus_fn(rgbd, cam, window=max(max_abs_coc(rgbd, cam), 1.0),
-                                      margin=margin, **opts, **shape)
+                window = fixed.get("window", max(max_abs_coc(rgbd, cam), 1.0))
+                f = dofjax.defocus_fn(rgbd, cam, margin=margin,
+                                      **dict(opts, window=window), **shape)
 
                 @jax.jit
                 def loss_and_grad(d, a, f=f):
@@ -221,7 +238,7 @@ def defocus_rows(scene, cam, truth, setting, args) -> list[dict]:
         rgbd, t_render, c_render = renders[None]
         if rgbd.mirror is not None and sharp_spp == max(args.sharp_spp):
             # The seed's listed inaccuracy: reflected light blurred at the mirror's depth.
-            opts = method_options(args.methods[0])
+            opts = dict(method_options(args.methods[0]), **fixed)
             out, t_fwd, c_fwd, _ = timed(
                 lambda: dofjax.defocus(rgbd.rgb, rgbd.depth, cam, margin=margin, **opts,
                                        **shape), args.runs)
@@ -239,19 +256,54 @@ def defocus_rows(scene, cam, truth, setting, args) -> list[dict]:
 
 
 def lens_rows(scene, cam, truth, setting, args, timing: dict | None) -> list[dict]:
-    """Lens sampling at each spp: error on this setting; timing measured when `timing` is None
-    (and returned in the rows), else reused from the scene's first setting."""
-    shape = setting.get("shape", {})
-    rows = []
-    for spp in args.spps:
-        def call(spp=spp):
-            return dofjax.render_reference(scene, cam, spp=spp, key=jax.random.key(1), **shape)
+    """Lens sampling at each spp (PRNG key `LENS_KEY`): error on this setting; timing measured
+    when `timing` is None (and returned in the rows), else reused from the scene's first setting.
 
-        if timing is None:
-            out, t, c, _ = timed(call, args.runs)
+    Each image and its timing are cached under --cache (keyed by the scene file's contents,
+    camera, spp, shape and the renderer's code), so a rerun re-times only the post-processes.
+    Calls are timed as `_common.timed` does (median of --runs after a warm-up, a call over 2 s
+    timed once); once a call takes over 1 s, the larger spp skip the warm-up: `render_reference`
+    traces a power-of-two chunk of samples per compiled step, the same program for every spp
+    above the chunk (`default_chunk`), so they are compiled already."""
+    shape = setting.get("shape", {})
+    tag = json.dumps(dict(
+        scene=hashlib.sha256(args.scene_texts[setting["scene"]].encode()).hexdigest(),
+        width=cam.width, height=cam.height, fov=float(cam.fov),
+        focus=float(cam.focus_distance), aperture=float(cam.aperture_radius),
+        eye=np.asarray(cam.eye).tolist(), target=np.asarray(cam.target).tolist(),
+        up=np.asarray(cam.up).tolist(), shape=shape, key=LENS_KEY, timed=timing is None,
+        code=code_hash()), sort_keys=True)
+    digest = hashlib.sha256(tag.encode()).hexdigest()[:16]
+    rows = []
+    compiled = False
+    for spp in sorted(args.spps):
+        file = Path(args.cache) / f"lens_{digest}_{spp}.npy"
+        meta = file.with_suffix(".json")
+        if file.exists() and meta.exists():
+            out = np.load(file)
+            t, c = json.loads(meta.read_text())["time"]
         else:
-            out = _block(call())
-            t, c = timing[spp]
+            def call(spp=spp):
+                return dofjax.render_reference(scene, cam, spp=spp, key=jax.random.key(LENS_KEY),
+                                               **shape)
+
+            if timing is not None:
+                out = _block(call())
+                t, c = timing[spp]
+            elif compiled:
+                times = []
+                while len(times) < args.runs and (not times or times[-1] <= 2.0):
+                    t0 = time.perf_counter()
+                    out = _block(call())
+                    times.append(time.perf_counter() - t0)
+                t, c = statistics.median(times), 0.0
+            else:
+                out, t, c, _ = timed(call, args.runs, slow=2.0)
+            compiled = compiled or t > 1.0
+            out = np.asarray(out)
+            file.parent.mkdir(parents=True, exist_ok=True)
+            np.save(file, out)
+            meta.write_text(json.dumps(dict(time=[t, c])))
         rows.append(dict(method=f"lens sampling, {spp} spp", kind="lens", spp=spp, time=t,
                          compile=c, pipeline_time=t, grad_time=None, grad_compile=None,
                          **metrics(out, truth)))
@@ -287,7 +339,8 @@ def write_outputs(results: list[dict], args, headline: list[str]):
     out.mkdir(parents=True, exist_ok=True)
     with open(out / "time_vs_error.json", "w") as fh:
         # No machine paths in the committed file: only the run's parameters.
-        saved = {k: v for k, v in vars(args).items() if k not in ("out", "cache", "from_json")}
+        saved = {k: v for k, v in vars(args).items()
+                 if k not in ("out", "cache", "from_json", "scene_texts")}
         json.dump(dict(args=saved, results=results), fh, indent=1)
     lines = [
         "# Run time versus error",
@@ -295,17 +348,23 @@ def write_outputs(results: list[dict], args, headline: list[str]):
         "Command: `" + f"python benchmarks/time_vs_error.py {args.command}".strip() + "`",
         "",
         f"{args.size}x{args.size} px, float32, ground truth = `render_reference` at "
-        f"{args.truth_spp} spp (stratified), sharp input rendered at "
-        f"{' and '.join(str(n) for n in args.sharp_spp)} spp with a guard band of the largest "
-        "|CoC| + 2 px (the seed's row: 1 spp, no guard band, as the seed did); "
-        f"median of {args.runs} runs after warm-up on {platform.machine()} with "
-        f"{os.cpu_count()} CPU cores ({jax.default_backend()}), jax {jax.__version__}. "
+        f"{args.truth_spp} spp (stratified; for defocus_regions.py's scenes the mean of two "
+        "independent halves, whose difference gives its noise: RMSE(half1 - half2) / 2), sharp "
+        f"input rendered at {' and '.join(str(n) for n in args.sharp_spp)} spp with a guard "
+        "band of the largest |CoC| + 2 px (the seed's row: 1 spp, no guard band, as the seed "
+        f"did); median of {args.runs} runs after warm-up (calls over 2 s: one run) on "
+        f"{platform.machine()} with {os.cpu_count()} CPU cores shared with other jobs "
+        f"({jax.default_backend()}), jax {jax.__version__}. "
         "Times in ms unless marked s. *time* is the method alone, *pipeline* adds the sharp "
         "`render` (with its layers) that defocus needs; *fwd+grad* is one loss value and its "
         "reverse-mode gradient w.r.t. (focus, aperture). Lens sampling is timed on the first "
-        "setting of each scene. *truth noise* is an upper bound on the ground truth's own RMSE: "
-        f"RMSE({max(args.spps)} spp) / sqrt(1 + {args.truth_spp}/{max(args.spps)}) assuming 1/spp "
-        "variance.",
+        "setting of each scene; its images and times are cached with the renderer's code in "
+        "the key, so a rerun re-times only the post-processes"
+        + (f"; the lens method uses {args.lens_samples} lens points per pixel"
+           if getattr(args, "lens_samples", None) else "") + ". "
+        "*truth noise*: measured from the halves, else an upper bound on the ground truth's own "
+        f"RMSE, RMSE({max(args.spps)} spp) / sqrt(1 + {args.truth_spp}/{max(args.spps)}) "
+        "assuming 1/spp variance.",
         "",
         "## Headline",
         "",
@@ -318,7 +377,9 @@ def write_outputs(results: list[dict], args, headline: list[str]):
         lines += [
             f"## {res['scene']}: {res['setting']}",
             "",
-            f"max |CoC| {res['max_coc']:.1f} px; truth noise <= {res['truth_noise']:.2g}",
+            f"max |CoC| {res['max_coc']:.1f} px; truth noise "
+            f"{'<= ' if res.get('truth_noise_kind', 'bound') == 'bound' else ''}"
+            f"{res['truth_noise']:.2g}",
             "",
             "| method | time | compile s | pipeline | fwd+grad | RMSE | PSNR dB | SSIM |",
             "|---|---:|---:|---:|---:|---:|---:|---:|",
@@ -343,7 +404,11 @@ def plot(results: list[dict], path: Path):
     n = len(results)
     cols = 2
     rows = -(-n // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(11, 3.6 * rows), squeeze=False)
+    n_entries = 1 + len({r["method"] for res in results for r in res["rows"]
+                         if r["kind"] != "lens"})  # the legend's: lens sampling + every row
+    legend_h = 0.2 * math.ceil(n_entries / 2) + 0.4  # inches below the panels
+    fig_h = 3.6 * rows + legend_h
+    fig, axes = plt.subplots(rows, cols, figsize=(11, fig_h), squeeze=False)
     names, top = [], max(r.get("sharp_spp", 1) for res in results for r in res["rows"])
     for res in results:
         names += [r.get("variant", r["method"]) for r in res["rows"]
@@ -379,7 +444,7 @@ def plot(results: list[dict], path: Path):
             seen.setdefault(lab, h)
     fig.legend(list(seen.values()), list(seen.keys()), loc="lower center", ncol=2, fontsize=8,
                bbox_to_anchor=(0.5, 0.0))
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.tight_layout(rect=(0, legend_h / fig_h, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -412,8 +477,8 @@ def headline_lines(results: list[dict]) -> list[str]:
             extra.append(f"{notes.count('extrapolated')} extrapolated beyond "
                          f"{max(r['spp'] for r in lens)} spp")
         if notes.count("<="):
-            extra.append(f"{notes.count('<=')} where 1 spp already matches (ratio is an upper "
-                         "bound)")
+            extra.append(f"{notes.count('<=')} where {min(r['spp'] for r in lens)} spp already "
+                         "matches (ratio is an upper bound)")
         out.append(
             f"To match the error of **{method}**, lens sampling needs "
             f"**{statistics.median(ratios):.2g}x** the time of render + defocus "
@@ -421,26 +486,46 @@ def headline_lines(results: list[dict]) -> list[str]:
             f"{max(ratios):.2g}x; {statistics.median(ratios_alone):.2g}x the defocus call "
             f"alone){'; ' + ', '.join(extra) if extra else ''}."
         )
+        at = [(row, lens256) for res in results
+              for row in res["rows"] if row["method"] == method
+              for lens256 in res["rows"] if lens256["kind"] == "lens" and lens256["spp"] == 256]
+        if at:
+            wins = sum(row["rmse"] <= lens256["rmse"] for row, lens256 in at)
+            speed = [lens256["time"] / row["pipeline_time"] for row, lens256 in at]
+            alone = [lens256["time"] / row["time"] for row, lens256 in at]
+            out.append(
+                f"Against lens sampling at 256 spp, **{method}** has the lower error in {wins} "
+                f"of {len(at)} settings; lens sampling at 256 spp takes "
+                f"{statistics.median(speed):.3g}x the time of render + defocus (median; "
+                f"{statistics.median(alone):.3g}x the defocus call alone)."
+            )
     return out
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--size", type=int, default=64, help="image width = height, px (default 64)")
+    p.add_argument("--suite", choices=list(SUITES), default="regions",
+                   help="regions (default): defocus_regions.py's scenes at 256x256, lens "
+                        "sampling at 16..4096 spp; small: the five scenes of SETTINGS at 64x64. "
+                        "Sets the defaults of --scenes, --size, --spps, --sharp-spp, --methods")
+    p.add_argument("--size", type=int, default=None, help="image width = height, px")
     p.add_argument("--truth-spp", type=int, default=4096, help="ground-truth spp (default 4096)")
-    p.add_argument("--spps", default="1,4,16,64,256,1024", help="lens-sampling spp to compare")
+    p.add_argument("--spps", default=None, help="lens-sampling spp to compare")
     p.add_argument("--runs", type=int, default=5, help="timed runs after warm-up (>= 5)")
-    p.add_argument("--sharp-spp", default="4,16",
-                   help="spp of the sharp render that defocus starts from (default 4,16)")
-    p.add_argument("--methods", default="pyramid,sliced,sliced+hidden,lens",
-                   help="defocus methods: pyramid, sliced, lens, or METHOD+hidden (the "
-                        "hidden-background estimate of single-layer input)")
+    p.add_argument("--sharp-spp", default=None,
+                   help="spp of the sharp render that defocus starts from")
+    p.add_argument("--methods", default=None,
+                   help="defocus methods: pyramid, sliced, lens, then any of +hidden (the "
+                        "hidden-background estimate of single-layer input) and +subK (K "
+                        "sub-apertures)")
+    p.add_argument("--lens-samples", type=int, default=None,
+                   help="lens points per pixel of the lens method (regions suite: 64)")
     p.add_argument("--layers", default="3", help="peeled-layer counts K to try (default 3)")
     p.add_argument("--grad-methods", default=None,
                    help="--methods tokens whose forward + gradient is timed (default: sliced and "
                         "sliced+hidden where listed, the fitter's; each costs a compile per "
                         "setting: 15-25 s for the pyramid, more for the lens method)")
-    p.add_argument("--scenes", default=",".join(SETTINGS), help="comma-separated scene names")
+    p.add_argument("--scenes", default=None, help="comma-separated scene names")
     p.add_argument("--out", default=str(HERE / "results"), help="output folder")
     p.add_argument("--cache", default=str(HERE / "results" / "cache"), help="ground-truth cache")
     p.add_argument("--from-json", metavar="PATH",
@@ -457,11 +542,16 @@ def main(argv=None) -> int:
         write_outputs(results, args, headline)
         print("\n".join(h.replace("**", "") for h in headline))
         return 0
-    args.spps = [int(s) for s in args.spps.split(",")]
+    suite = SUITES[args.suite]
+    for key in ("size", "spps", "sharp_spp", "methods", "lens_samples", "scenes"):
+        if getattr(args, key) is None:
+            value = suite[key]
+            setattr(args, key, ",".join(value) if key == "scenes" else value)
+    args.spps = [int(s) for s in str(args.spps).split(",")]
     if len(set(args.spps)) < 2:
         p.error(f"--spps: at least two sample counts (the lens-sampling curve), got {args.spps}")
     args.layers = [int(s) for s in args.layers.split(",") if s]
-    args.sharp_spp = [int(s) for s in args.sharp_spp.split(",") if s]
+    args.sharp_spp = [int(s) for s in str(args.sharp_spp).split(",") if s]
     args.methods = [s for s in args.methods.split(",") if s]
     for token in args.methods:
         try:
@@ -479,22 +569,39 @@ def main(argv=None) -> int:
     args.scenes = [s for s in args.scenes.split(",") if s]
     if args.runs < 5:
         p.error(f"--runs must be >= 5 (median of at least 5 timed runs), got {args.runs}")
+    if args.truth_spp < 2 or args.truth_spp % 2:
+        p.error(f"--truth-spp must be an even integer >= 2, got {args.truth_spp}")
     for name in args.scenes:
         if name not in SETTINGS:
             p.error(f"--scenes: unknown scene {name!r} (known: {', '.join(SETTINGS)})")
+    code_hash()  # the renderer code this run imported: read once, before any reference
 
     results = []
+    args.scene_texts = {}
     t_start = time.perf_counter()
     for name in args.scenes:
         path = HERE / "scenes" / f"{name}.json"
         scene_text = path.read_text()
+        args.scene_texts[name] = scene_text
         scene = dofjax.load_scene(path)
         base = dofjax.load_camera(path)
         lens_timing = None
         for setting in SETTINGS[name]:
-            cam = sized_camera(base, args.size, setting)
+            setting = dict(setting, scene=name)
             print(f"{name}: {setting['name']}", flush=True)
-            truth = ground_truth(scene, cam, scene_text, setting, args)
+            if "max_coc" in setting:  # a defocus_regions.py case: its camera and halves
+                coc = setting["max_coc"] * args.size / 256
+                cam, setting["margin"] = defocus_regions.case_camera(
+                    scene, base, args.size, setting["focus"], coc)
+                setting["window"] = coc
+                halves = [reference_half(scene, cam, path, args.truth_spp // 2, seed, args.cache)
+                          for seed in (0, 1)]
+                truth = 0.5 * (halves[0] + halves[1])
+                noise = defocus_regions.rmse(halves[0], halves[1],
+                                             np.ones(truth.shape[:2], bool)) / 2
+            else:
+                cam = sized_camera(base, args.size, setting)
+                truth, noise = ground_truth(scene, cam, scene_text, setting, args), None
             rows = defocus_rows(scene, cam, truth, setting, args)
             lrows = lens_rows(scene, cam, truth, setting, args, lens_timing)
             if lens_timing is None:
@@ -502,10 +609,14 @@ def main(argv=None) -> int:
             rows += lrows
             sharp = dofjax.render(scene, cam, layers=1)
             res = dict(scene=name, setting=setting["name"], rows=rows,
-                       max_coc=max_abs_coc(sharp, cam))
-            top = max(args.spps)
-            e_top = next(r["rmse"] for r in lrows if r["spp"] == top)
-            res["truth_noise"] = e_top / math.sqrt(1.0 + args.truth_spp / top)
+                       max_coc=max_abs_coc(sharp, cam), aperture=float(cam.aperture_radius))
+            if noise is None:  # an upper bound from the largest spp's error, 1/spp variance
+                top = max(args.spps)
+                e_top = next(r["rmse"] for r in lrows if r["spp"] == top)
+                res["truth_noise"] = e_top / math.sqrt(1.0 + args.truth_spp / top)
+                res["truth_noise_kind"] = "bound"
+            else:
+                res["truth_noise"], res["truth_noise_kind"] = noise, "halves"
             results.append(res)
             for r in rows:
                 print(f"  {r['method']:<45} time {fmt_ms(r['time']):>9}  pipeline "
