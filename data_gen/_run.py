@@ -33,8 +33,9 @@ hidden peeled layers included), ``aperture_capped`` (the blur bounds narrowed th
 and ``focal_length`` / ``sensor_width`` / ``f_number`` (photographic cameras) or
 ``reference_key`` (reference targets: the `jax.random.key` seed). The EXR files carry the same
 truth plus ``kind``, ``identifiable``, ``noise``, ``noise_model``, ``seed``, ``index``,
-``method``, ``defocus_method`` ("sliced" or "pyramid", config.target.defocus_method; None for
-reference targets), ``spp`` and ``role`` ("sharp" or "target") as ``dofjax:`` attributes. Noise can
+``method``, ``defocus_method`` ("exact", "sliced" or "pyramid", config.target.defocus_method;
+None for reference targets), ``spp`` and ``role`` ("sharp" or "target") as ``dofjax:``
+attributes. Noise can
 be reproduced from the record: ``apply_noise(clean, record["noise"], sample_rng(seed, index,
 "noise_pixels"))``, where ``clean`` is the target EXR's layer "clean" (absent for model "none").
 """

@@ -182,10 +182,10 @@ def _node_weight(t, n0: float, n1: float):
 
 def _unblend(y):
     """The weight x of the slice behind (in a bracket of two node slices) whose composite gives
-    it the share y. A source a fraction x of the way from slice k to k + 1 puts 1 - x on slice k and x
-    on slice k + 1, and slice k hides slice k + 1 by (1 - x)^2 (`_hats`' occluders: continuous
-    as the source crosses a level), so after the renormalisation by coverage slice k + 1's
-    share is e(x) = x^2 (2 - x) / (1 - x (1 - x)^2). Newton's method on e(x) = y from x = y."""
+    it the share y. A source a fraction x of the way from slice k to k + 1 puts 1 - x on slice
+    k and x on slice k + 1, and slice k hides slice k + 1 by (1 - x)^2 (`_hats`' occluders:
+    continuous as the source crosses a level), so after the renormalisation by coverage slice
+    k + 1's share is e(x) = x^2 (2 - x) / (1 - x (1 - x)^2). Newton's method on e(x) = y."""
     x = y
     for _ in range(6):
         num = x * x * (2.0 - x)
@@ -211,10 +211,10 @@ def level_index(c, p: _Plan):
         rhos = np.array([b[1] for b in p.brackets if b[0] == "rho"] + [p.brackets[-1][2]])
         sums = np.array([b[3] for b in p.brackets if b[0] == "rho"] + [p.brackets[-1][4]])
         rho = jnp.sqrt(a2 + R0 * R0)
-        k = jnp.clip(jnp.searchsorted(jnp.asarray(rhos, c.dtype), rho, side="right") - 1, 0,
-                     p.n_node - 1)
-        r0, r1 = jnp.take(jnp.asarray(rhos, c.dtype), k), jnp.take(jnp.asarray(rhos, c.dtype), k + 1)
-        n0, n1 = jnp.take(jnp.asarray(sums, c.dtype), k), jnp.take(jnp.asarray(sums, c.dtype), k + 1)
+        rhos, sums = jnp.asarray(rhos, c.dtype), jnp.asarray(sums, c.dtype)
+        k = jnp.clip(jnp.searchsorted(rhos, rho, side="right") - 1, 0, p.n_node - 1)
+        r0, r1 = jnp.take(rhos, k), jnp.take(rhos, k + 1)
+        n0, n1 = jnp.take(sums, k), jnp.take(sums, k + 1)
         t = _node_weight(jnp.clip((rho - r0) / (r1 - r0), 0.0, 1.0), n0, n1)
         # the slice behind gets the composited share: the smaller node's near the lens, the
         # larger one's beyond the focal plane
@@ -313,7 +313,6 @@ def exact_defocus(rgb, depth, camera, *, window: float, blades=None, rotation=0.
         rhos.append(jnp.minimum(jnp.sqrt(cr * cr + R0 * R0), p.rho_g))
         nears.append(cr > 0)
     gweights = [_gather_weights(r, nr, p) for r, nr in zip(rhos, nears)]
-    n_ch = fields[0].shape[0]  # colour (3), coverage, [footprint]
 
     def slice_fields(level, crop: bool):
         """Per source: the slice's premultiplied fields (n_ch + occluders) and hat weight."""
@@ -391,6 +390,7 @@ def exact_defocus(rgb, depth, camera, *, window: float, blades=None, rotation=0.
     def run_nodes(state, ids, kernels):
         specs = jnp.asarray(np.stack([spectrum(k) for k in kernels]), cdtype)
 
+        @jax.checkpoint  # reverse mode stores the carries only and recomputes each slice
         def body(st, x):
             level, has, spec = x
             new = jax.lax.cond(has, lambda s: composite(s, blur_node(level, spec)), skip, st)
@@ -406,6 +406,7 @@ def exact_defocus(rgb, depth, camera, *, window: float, blades=None, rotation=0.
     if near_ids:
         state = run_nodes(state, near_ids, p.node_kernels[:n])
 
+    @jax.checkpoint
     def gather_body(st, x):
         level, has = x
         return jax.lax.cond(has, lambda s: composite(s, blur_gather(level)), skip, st), None

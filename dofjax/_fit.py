@@ -1923,8 +1923,8 @@ def fit_focus(
             input, ~1.5x its cost per step). The defaults are `dofjax.defocus`'s ("exact", no
             hidden-background estimate), so a target made with a bare `dofjax.defocus(...)` is
             the model a bare fit fits; pass the same options to both. The exact model
-            polishes only: the multi-start, scan and screen run with "sliced". For photographs (or lens-sampled targets) of an RGBD with peeled
-            layers, {"method": "lens"} is the model closest to a real lens (relative mismatch
+            polishes only: the multi-start, scan and screen run with "sliced". For photographs
+            (or lens-sampled targets) of an RGBD with peeled layers, {"method": "lens"} is the model closest to a real lens (relative mismatch
             at the true camera 0.022 vs the sliced model's 0.035, median of the
             lens-reference cases in benchmarks/README.md); it polishes only: the multi-start,
             scan and screen run with "sliced" (same shape options), and the lens model takes
