@@ -89,3 +89,73 @@ def timed(fn, runs: int, slow: float | None = None):
             break
     med = statistics.median(times)
     return out, med, max(first - med, 0.0), times
+
+
+def cached_reference(scene, camera, scene_file, spp: int, seed: int, cache: str, *,
+                     render=None, probe_spp: int = 4, tolerance: float = 1e-4):
+    """`render_reference(scene, camera, spp=spp, key=jax.random.key(seed))` cached on disk.
+
+    Keyed by the scene file's contents, the camera, spp, seed and dtype; stored with the
+    renderer's code hash (`code_hash`) and a probe, the same render at `probe_spp`. When the
+    code hash differs (the renderer changed, or is being edited), the probe is rendered again
+    and the cached image is reused only if the new probe matches the stored one to `tolerance`
+    (largest absolute difference): the new code renders the same image, so the reference is
+    still the truth. Otherwise it is rendered again.
+
+    Args:
+        render: optional callable `() -> (image, info dict)` that renders it (e.g. timed);
+            `info` is stored and returned. Default: an untimed `render_reference` call.
+
+    Returns:
+        (image (H, W, 3) numpy array, info dict).
+    """
+    import json
+    import time
+
+    import jax
+    import numpy as np
+
+    import dofjax
+
+    with open(scene_file, "rb") as fh:
+        contents = fh.read()
+    tag = json.dumps(dict(
+        scene=hashlib.sha256(contents).hexdigest(), width=camera.width, height=camera.height,
+        fov=float(camera.fov), focus=float(camera.focus_distance),
+        aperture=float(camera.aperture_radius), eye=np.asarray(camera.eye).tolist(),
+        target=np.asarray(camera.target).tolist(), up=np.asarray(camera.up).tolist(), spp=spp,
+        seed=seed, dtype=str(np.dtype(jax.numpy.result_type(float)))), sort_keys=True)
+    stem = os.path.join(cache, "ref_" + hashlib.sha256(tag.encode()).hexdigest()[:16])
+
+    def probe():
+        return np.asarray(dofjax.render_reference(scene, camera, spp=probe_spp,
+                                                  key=jax.random.key(seed)))
+
+    if os.path.exists(stem + ".json") and os.path.exists(stem + ".npy"):
+        with open(stem + ".json") as fh:
+            meta = json.load(fh)
+        if code_hash() in meta["code"]:
+            return np.load(stem + ".npy"), meta["info"]
+        diff = float(np.max(np.abs(probe() - np.load(stem + "_probe.npy"))))
+        if diff <= tolerance:
+            meta["code"].append(code_hash())  # this code renders the same image
+            with open(stem + ".json", "w") as fh:
+                json.dump(meta, fh)
+            return np.load(stem + ".npy"), meta["info"]
+        print(f"    cached reference {os.path.basename(stem)}: the renderer changed and its "
+              f"probe differs by {diff:.2g}; rendering again", flush=True)
+    t0 = time.perf_counter()
+    if render is None:
+        img, info = np.asarray(dofjax.render_reference(scene, camera, spp=spp,
+                                                       key=jax.random.key(seed))), {}
+    else:
+        img, info = render()
+        img = np.asarray(img)
+    print(f"    reference {spp} spp (seed {seed}): {time.perf_counter() - t0:.1f} s", flush=True)
+    os.makedirs(cache, exist_ok=True)
+    np.save(stem + "_probe.npy", probe())
+    np.save(stem + ".tmp.npy", img)
+    os.replace(stem + ".tmp.npy", stem + ".npy")
+    with open(stem + ".json", "w") as fh:
+        json.dump(dict(code=[code_hash()], info=info, spp=spp, seed=seed), fh)
+    return img, info

@@ -13,13 +13,16 @@ same largest |c| uses the same window and guard band, so they share compiled pro
 
 Reference: `render_reference` at --spp, as two independent halves (seeds 0 and 1) averaged; the
 reference noise is RMSE(half1 - half2) / 2, per region too. Halves are cached as .npy in
-benchmarks/results/cache/ (git-ignored; `defocus_accuracy.reference_half`: keyed by the scene
-file's contents, camera, spp, seed and the renderer's code).
+benchmarks/results/cache/ (git-ignored; `_common.cached_reference`: keyed by the scene file's
+contents, camera, spp and seed, stored with the renderer's code hash and reused under other code
+only if a 4-spp probe renders the same).
 
 Defocus: a sharp render with a guard band of the largest |c| + 2 px (`Camera.padded`) at
---sharp-spp, with --layers peeled layers; each --methods token on single-layer RGB-D with the
-hidden-background estimate (`hidden=True`) and on the peeled layers (`render(..., layers=K)`).
-The lens method (64 lens points) runs single-layer only, on the cases marked `lens`.
+--sharp-spp, with --layers peeled layers; each --methods token (default: exact, the default
+method; sliced, sliced with 4 and 8 sub-apertures, pyramid, lens) on single-layer RGB-D with
+the hidden-background estimate (`hidden=True`) and on the peeled layers (`render(...,
+layers=K)`). Sub-apertures run on peeled layers only; the lens method (64 lens points)
+single-layer only, on the cases marked `lens`.
 
 Regions: a depth edge is a jump of more than 1 px of CoC between 4-neighbours, in the depth map
 or (on mirrors) in the mirror's virtual depth; its reach is the larger |c| of the pair. A pixel
@@ -44,8 +47,7 @@ import time
 import jax
 import numpy as np
 import scipy.ndimage as ndi
-from _common import code_hash, method_options, timed
-from defocus_accuracy import reference_half
+from _common import cached_reference, code_hash, method_options, timed
 from tqdm.auto import tqdm
 
 import dofjax
@@ -159,15 +161,18 @@ def rmse(a, b, mask):
 
 
 def variants(args, lens_case):
-    """(label, token, layered?) of every defocus row of a case."""
+    """(label, token, layered?) of every defocus row of a case: each token single-layer (with
+    `hidden=True`) and on peeled layers, except the lens method (single-layer, on the cases
+    marked for it) and sub-apertures (peeled layers: where they pay)."""
     out = []
     for token in args.methods:
-        method = method_options(token)["method"]
-        if method == "lens":
+        opts = method_options(token)
+        if opts["method"] == "lens":
             if lens_case:
                 out.append((f"{token} ({LENS_SAMPLES} pts), 1 layer + hidden", token, False))
             continue
-        out.append((f"{token}, 1 layer + hidden", token, False))
+        if opts.get("subapertures", 1) == 1:
+            out.append((f"{token}, 1 layer + hidden", token, False))
         out.append((f"{token}, {args.layers} layers", token, True))
     return out
 
@@ -180,7 +185,7 @@ def run_case(name, scene, base, case, args, bar):
     halves = []
     for seed in (0, 1):
         bar.set_postfix_str(f"{name}, {label}: reference half {seed + 1}/2")
-        halves.append(reference_half(scene, cam, path, args.spp // 2, seed, args.cache))
+        halves.append(cached_reference(scene, cam, path, args.spp // 2, seed, args.cache)[0])
     ref = 0.5 * (halves[0] + halves[1])
     masks = region_masks(scene, cam)
     noise = {k: rmse(halves[0], halves[1], m) / 2 for k, m in masks.items()}
@@ -350,9 +355,10 @@ def main(argv=None):
     ap.add_argument("--spp", type=int, default=None, help="reference spp, two halves (4096)")
     ap.add_argument("--sharp-spp", type=int, default=16, help="sharp-input spp (16)")
     ap.add_argument("--layers", type=int, default=3, help="peeled layers of the layered rows")
-    ap.add_argument("--methods", default="sliced,sliced+sub4,sliced+sub8,pyramid,lens",
+    ap.add_argument("--methods", default="exact,sliced,sliced+sub4,sliced+sub8,pyramid,lens",
                     help="comma-separated METHOD[+subK] tokens (each run single-layer with "
-                         "hidden=True and on peeled layers; lens: single-layer, lens cases)")
+                         "hidden=True and on peeled layers; lens: single-layer, on the cases "
+                         "marked for it; +subK: peeled layers)")
     ap.add_argument("--scenes", default=",".join(CASES), help="comma-separated scene names")
     ap.add_argument("--no-lens", action="store_true", help="skip the lens method's rows")
     ap.add_argument("--runs", type=int, default=None, help="timed runs after warm-up (5)")

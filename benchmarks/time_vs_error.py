@@ -14,22 +14,23 @@ given there), two settings each, at 64x64, lens sampling at 1..1024 spp. For eve
 - ground truth: `dofjax.render_reference` at --truth-spp (default 4096) spp, cached on disk under
   benchmarks/results/cache/ (keyed by scene file contents, setting, size, spp and the renderer's
   code, `_common.code_hash`); for the regions suite the two halves of defocus_regions.py
-  (`defocus_accuracy.reference_half`, the same cache files), whose difference gives its noise;
-- methods: `dofjax.defocus` with each of --methods (regions: pyramid, sliced, sliced+hidden,
-  sliced+sub4, sliced+sub8, lens+hidden with 64 lens points; small: pyramid, sliced,
-  sliced+hidden, lens) on a `dofjax.render` at each --sharp-spp (regions 16; small 4, 16) with a
-  guard band (`Camera.padded`), single layer and K peeled layers (--layers, 3; not for +hidden
-  tokens), mirrors confined to their footprint (`RGBD.mirror`); where the scene has mirrors,
-  also the reflection blurred at the mirror's depth (the seed's listed inaccuracy); the seed's
-  algorithm (`seed_defocus`, the "before" row); and `render_reference` at --spps;
+  (`_common.cached_reference`, the same cache files), whose difference gives its noise;
+- methods: `dofjax.defocus` with each of --methods (regions: exact+hidden, exact (the default
+  method), sliced+hidden, sliced, sliced+sub4, sliced+sub8, pyramid+hidden, lens+hidden with 64
+  lens points; small: pyramid, sliced, sliced+hidden, lens) on a `dofjax.render` at each
+  --sharp-spp (regions 16; small 4, 16) with a guard band (`Camera.padded`), single layer and K
+  peeled layers (--layers, 3; see `variants`), mirrors confined to their footprint
+  (`RGBD.mirror`); where the scene has mirrors, also the reflection blurred at the mirror's
+  depth (the seed's listed inaccuracy); the seed's algorithm (`seed_defocus`, the "before" row);
+  and `render_reference` at --spps;
 - timing: median of --runs (>= 5) calls after one warm-up call (a call over 2 s is timed
   once), with the compile time (first call minus median) separate, `block_until_ready` on every
   result; defocus is reported alone and as a pipeline (sharp render + defocus), and forward +
   reverse-mode gradient of an image loss with respect to (focus distance, aperture) for the
-  --grad-methods (default the sliced ones: the others' gradient programs take 15 s and more to
-  compile at every setting). Lens sampling is timed on the first setting of each scene (its cost
-  does not depend on focus or aperture), its error measured on every setting; its images and
-  times are cached (`lens_rows`).
+  --grad-methods (default exact+hidden, sliced and sliced+hidden: the others' gradient
+  programs take 15 s and more to compile at every setting). Lens sampling is timed on the
+  first setting of each scene (its cost does not depend on focus or aperture), its error
+  measured on every setting; its images and times are cached (`lens_rows`).
 - error: RMSE, PSNR and SSIM (scikit-image; data range 1 = white) against the truth, on linear
   colours (HDR values above 1 count fully).
 
@@ -54,8 +55,7 @@ import defocus_regions
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import code_hash, method_options, timed
-from defocus_accuracy import reference_half
+from _common import cached_reference, code_hash, method_options, timed
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 import dofjax
@@ -96,8 +96,8 @@ for _name, _cases in defocus_regions.CASES.items():
 # --suite: its scenes and the defaults of the options it leaves out
 SUITES = {
     "regions": dict(scenes=list(defocus_regions.CASES), size=256, spps="16,64,256,1024,4096",
-                    sharp_spp="16", methods="pyramid,sliced,sliced+hidden,sliced+sub4,"
-                    "sliced+sub8,lens+hidden", lens_samples=64),
+                    sharp_spp="16", methods="exact+hidden,exact,sliced+hidden,sliced,"
+                    "sliced+sub4,sliced+sub8,pyramid+hidden,lens+hidden", lens_samples=64),
     "small": dict(scenes=["plane", "occluders", "mirror", "highlights", "depth_range"], size=64,
                   spps="1,4,16,64,256,1024", sharp_spp="4,16",
                   methods="pyramid,sliced,sliced+hidden,lens", lens_samples=None),
@@ -170,8 +170,14 @@ def seed_function():
 def variants(args) -> list[tuple[str, str, int | None]]:
     """(label, `--methods` token, peeled layers K or None) of every defocus row: each
     `--methods` token on single-layer RGB-D, and each token without "+hidden" on K peeled
-    layers for every K in `--layers` (peeled layers replace the hidden-background estimate)."""
-    out = [(f"{token}, 1 layer", token, None) for token in args.methods]
+    layers for every K in `--layers` (peeled layers replace the hidden-background estimate).
+    A token whose "+hidden" form is listed too, and a "+subK" token, run on peeled layers only
+    (single-layer input is the "+hidden" token's row)."""
+    def layered_only(token):
+        return f"{token}+hidden" in args.methods or "subapertures" in method_options(token)
+
+    out = [(f"{token}, 1 layer", token, None) for token in args.methods
+           if not layered_only(token)]
     for k in args.layers:
         out += [(f"{token}, {k} layers", token, k)
                 for token in args.methods if not method_options(token).get("hidden")]
@@ -259,38 +265,23 @@ def lens_rows(scene, cam, truth, setting, args, timing: dict | None) -> list[dic
     """Lens sampling at each spp (PRNG key `LENS_KEY`): error on this setting; timing measured
     when `timing` is None (and returned in the rows), else reused from the scene's first setting.
 
-    Each image and its timing are cached under --cache (keyed by the scene file's contents,
-    camera, spp, shape and the renderer's code), so a rerun re-times only the post-processes.
-    Calls are timed as `_common.timed` does (median of --runs after a warm-up, a call over 2 s
-    timed once); once a call takes over 1 s, the larger spp skip the warm-up: `render_reference`
-    traces a power-of-two chunk of samples per compiled step, the same program for every spp
-    above the chunk (`default_chunk`), so they are compiled already."""
+    Each image is cached with its timing (`_common.cached_reference`), so a rerun re-times only
+    the post-processes. Calls are timed as `_common.timed` does (median of --runs after a
+    warm-up, a call over 2 s timed once); once a call takes over 1 s, the larger spp skip the
+    warm-up: `render_reference` traces a power-of-two chunk of samples per compiled step, the
+    same program for every spp above the chunk (`default_chunk`), so they are compiled
+    already."""
     shape = setting.get("shape", {})
-    tag = json.dumps(dict(
-        scene=hashlib.sha256(args.scene_texts[setting["scene"]].encode()).hexdigest(),
-        width=cam.width, height=cam.height, fov=float(cam.fov),
-        focus=float(cam.focus_distance), aperture=float(cam.aperture_radius),
-        eye=np.asarray(cam.eye).tolist(), target=np.asarray(cam.target).tolist(),
-        up=np.asarray(cam.up).tolist(), shape=shape, key=LENS_KEY, timed=timing is None,
-        code=code_hash()), sort_keys=True)
-    digest = hashlib.sha256(tag.encode()).hexdigest()[:16]
+    path = HERE / "scenes" / f"{setting['scene']}.json"
     rows = []
-    compiled = False
+    compiled = [False]
     for spp in sorted(args.spps):
-        file = Path(args.cache) / f"lens_{digest}_{spp}.npy"
-        meta = file.with_suffix(".json")
-        if file.exists() and meta.exists():
-            out = np.load(file)
-            t, c = json.loads(meta.read_text())["time"]
-        else:
-            def call(spp=spp):
-                return dofjax.render_reference(scene, cam, spp=spp, key=jax.random.key(LENS_KEY),
-                                               **shape)
+        def call(spp=spp):
+            return dofjax.render_reference(scene, cam, spp=spp, key=jax.random.key(LENS_KEY),
+                                           **shape)
 
-            if timing is not None:
-                out = _block(call())
-                t, c = timing[spp]
-            elif compiled:
+        def render(call=call):
+            if compiled[0]:
                 times = []
                 while len(times) < args.runs and (not times or times[-1] <= 2.0):
                     t0 = time.perf_counter()
@@ -299,11 +290,20 @@ def lens_rows(scene, cam, truth, setting, args, timing: dict | None) -> list[dic
                 t, c = statistics.median(times), 0.0
             else:
                 out, t, c, _ = timed(call, args.runs, slow=2.0)
-            compiled = compiled or t > 1.0
-            out = np.asarray(out)
-            file.parent.mkdir(parents=True, exist_ok=True)
-            np.save(file, out)
-            meta.write_text(json.dumps(dict(time=[t, c])))
+            return out, dict(time=t, compile=c)
+
+        if shape:  # (the cache keys the disc aperture only)
+            out, info = render()
+        elif timing is None:
+            out, info = cached_reference(scene, cam, path, spp, LENS_KEY, args.cache,
+                                         render=render)
+            if "time" not in info:  # cached by an untimed call
+                out, info = render()
+        else:
+            out, _ = cached_reference(scene, cam, path, spp, LENS_KEY, args.cache)
+            info = dict(time=timing[spp][0], compile=timing[spp][1])
+        t, c = info["time"], info["compile"]
+        compiled[0] = compiled[0] or t > 1.0
         rows.append(dict(method=f"lens sampling, {spp} spp", kind="lens", spp=spp, time=t,
                          compile=c, pipeline_time=t, grad_time=None, grad_compile=None,
                          **metrics(out, truth)))
@@ -522,9 +522,10 @@ def main(argv=None) -> int:
                    help="lens points per pixel of the lens method (regions suite: 64)")
     p.add_argument("--layers", default="3", help="peeled-layer counts K to try (default 3)")
     p.add_argument("--grad-methods", default=None,
-                   help="--methods tokens whose forward + gradient is timed (default: sliced and "
-                        "sliced+hidden where listed, the fitter's; each costs a compile per "
-                        "setting: 15-25 s for the pyramid, more for the lens method)")
+                   help="--methods tokens whose forward + gradient is timed (default: "
+                        "exact+hidden, sliced and sliced+hidden where listed; each costs a "
+                        "compile per setting: 15-25 s for the pyramid, more for the lens "
+                        "method)")
     p.add_argument("--scenes", default=None, help="comma-separated scene names")
     p.add_argument("--out", default=str(HERE / "results"), help="output folder")
     p.add_argument("--cache", default=str(HERE / "results" / "cache"), help="ground-truth cache")
@@ -559,7 +560,8 @@ def main(argv=None) -> int:
         except ValueError as e:
             p.error(f"--methods: {e}")
     if args.grad_methods is None:  # the sliced ones among --methods
-        args.grad_methods = [t for t in args.methods if t in ("sliced", "sliced+hidden")]
+        args.grad_methods = [t for t in args.methods
+                             if t in ("exact+hidden", "sliced", "sliced+hidden")]
     else:
         args.grad_methods = [s for s in args.grad_methods.split(",") if s]
         for token in args.grad_methods:
@@ -594,8 +596,8 @@ def main(argv=None) -> int:
                 cam, setting["margin"] = defocus_regions.case_camera(
                     scene, base, args.size, setting["focus"], coc)
                 setting["window"] = coc
-                halves = [reference_half(scene, cam, path, args.truth_spp // 2, seed, args.cache)
-                          for seed in (0, 1)]
+                halves = [cached_reference(scene, cam, path, args.truth_spp // 2, seed,
+                                           args.cache)[0] for seed in (0, 1)]
                 truth = 0.5 * (halves[0] + halves[1])
                 noise = defocus_regions.rmse(halves[0], halves[1],
                                              np.ones(truth.shape[:2], bool)) / 2

@@ -1,4 +1,4 @@
-"""The benchmark scenes of benchmarks/defocus_regions.py load and render (so the files cannot rot)."""
+"""The scenes of benchmarks/defocus_regions.py load and render (so the files cannot rot)."""
 
 import os
 
