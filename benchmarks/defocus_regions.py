@@ -11,7 +11,8 @@ of, inside and behind the scene, the aperture scaled so the largest |c| over the
 (guard band, peeled layers and mirror layer included) is 4, 12 or 24 px. Every case with the
 same largest |c| uses the same window and guard band, so they share compiled programs.
 
-Reference: `render_reference` at --spp, as two independent halves (seeds 0 and 1) averaged; the
+Reference: `render_reference` at --spp (4096; --spp-other, 1024, on the cases not marked for
+the lens method, to bound the run time), as two independent halves (seeds 0 and 1) averaged; the
 reference noise is RMSE(half1 - half2) / 2, per region too. Halves are cached as .npy in
 benchmarks/results/cache/ (git-ignored; `_common.cached_reference`: keyed by the scene file's
 contents, camera, spp and seed, stored with the renderer's code hash and reused under other code
@@ -183,9 +184,10 @@ def run_case(name, scene, base, case, args, bar):
     cam, margin = case_camera(scene, base, args.size, focus, max_coc)
     path = scene_path(name)
     halves = []
+    spp = args.spp if lens_case else args.spp_other
     for seed in (0, 1):
         bar.set_postfix_str(f"{name}, {label}: reference half {seed + 1}/2")
-        halves.append(cached_reference(scene, cam, path, args.spp // 2, seed, args.cache)[0])
+        halves.append(cached_reference(scene, cam, path, spp // 2, seed, args.cache)[0])
     ref = 0.5 * (halves[0] + halves[1])
     masks = region_masks(scene, cam)
     noise = {k: rmse(halves[0], halves[1], m) / 2 for k, m in masks.items()}
@@ -221,7 +223,7 @@ def run_case(name, scene, base, case, args, bar):
                    f"(noise {noise['whole']:.4f})  {1e3 * t:9.1f} ms  compile {compile_s:.1f} s")
     return dict(scene=name, case=label, focus=focus, max_coc=max_coc,
                 aperture=float(cam.aperture_radius), margin=margin, width=cam.width,
-                height=cam.height, ref_spp=args.spp, noise=noise,
+                height=cam.height, ref_spp=spp, noise=noise,
                 fractions={k: float(m.mean()) for k, m in masks.items()}, rows=rows)
 
 
@@ -260,7 +262,8 @@ def write_outputs(results, args, base, elapsed):
     lines = [
         "# dofjax.defocus by region against the lens-sampling reference\n",
         "Command: `" + f"python benchmarks/defocus_regions.py {args.command}".strip() + "`\n",
-        f"{args.size} px wide; reference `render_reference` at {args.spp} spp (two halves); "
+        f"{args.size} px wide; reference `render_reference` at {args.spp} spp (two halves; "
+        f"{args.spp_other} spp on the cases without a lens-method row); "
         f"sharp input {args.sharp_spp} spp with a guard band of the largest |c| + 2 px; "
         f"{args.layers} peeled layers for the layered rows. Interior: farther than "
         "max(edge reach, own |c|) + 2 px from every depth edge; edges: the rest. RMSE-n: the "
@@ -283,15 +286,15 @@ def write_outputs(results, args, base, elapsed):
             f"{fmt(s['max_rmse_whole'])} | {fmt_ms(s['time'])} | {s['compile']:.1f} |")
     lines += ["", "![interior and whole-image RMSE per case, time vs error](defocus_regions.png)",
               "", "## Every case\n",
-              "| scene | case | max \\|c\\| | interior px | noise int / edges / whole | method "
-              "| interior | edges | whole | time ms | compile s |",
-              "|---|---|---:|---:|---|---|---:|---:|---:|---:|---:|"]
+              "| scene | case | max \\|c\\| | ref spp | interior px | noise int / edges / whole "
+              "| method | interior | edges | whole | time ms | compile s |",
+              "|---|---|---:|---:|---:|---|---|---:|---:|---:|---:|---:|"]
     for r in results:
         n = r["noise"]
         for i, row in enumerate(r["rows"]):
-            head = (f"| {r['scene']} | {r['case']} | {r['max_coc']:g} | "
+            head = (f"| {r['scene']} | {r['case']} | {r['max_coc']:g} | {r['ref_spp']} | "
                     f"{100 * r['fractions']['interior']:.0f}% | {fmt(n['interior'])} / "
-                    f"{fmt(n['edges'])} / {fmt(n['whole'])} |" if i == 0 else "| | | | | |")
+                    f"{fmt(n['edges'])} / {fmt(n['whole'])} |" if i == 0 else "| | | | | | |")
             lines.append(f"{head} {row['method']} | {fmt(row['rmse_interior'])} | "
                          f"{fmt(row['rmse_edges'])} | {fmt(row['rmse_whole'])} | "
                          f"{fmt_ms(row['time'])} | {row['compile']:.1f} |")
@@ -352,8 +355,14 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true",
                     help="smoke run: 64 px, 256 spp, 3 runs, the lens case of each scene")
     ap.add_argument("--size", type=int, default=None, help="image width, px (default 256)")
-    ap.add_argument("--spp", type=int, default=None, help="reference spp, two halves (4096)")
-    ap.add_argument("--sharp-spp", type=int, default=16, help="sharp-input spp (16)")
+    ap.add_argument("--spp", type=int, default=None,
+                    help="reference spp of the cases marked for the lens method, two halves "
+                         "(4096)")
+    ap.add_argument("--spp-other", type=int, default=None,
+                    help="reference spp of the other cases (1024)")
+    ap.add_argument("--sharp-spp", type=int, default=64,
+                    help="sharp-input spp (64: its sampling noise, blurred, stays near the "
+                         "reference's)")
     ap.add_argument("--layers", type=int, default=3, help="peeled layers of the layered rows")
     ap.add_argument("--methods", default="exact,sliced,sliced+sub4,sliced+sub8,pyramid,lens",
                     help="comma-separated METHOD[+subK] tokens (each run single-layer with "
@@ -371,9 +380,12 @@ def main(argv=None):
     args.command = " ".join(shown)
     args.size = args.size or (64 if args.quick else 256)
     args.spp = args.spp or (256 if args.quick else 4096)
+    args.spp_other = args.spp_other or (256 if args.quick else 1024)
     args.runs = args.runs or (3 if args.quick else 5)
-    if args.spp < 2 or args.spp % 2:
-        ap.error(f"--spp must be an even integer >= 2, got {args.spp}")
+    for opt in ("spp", "spp_other"):
+        if getattr(args, opt) < 2 or getattr(args, opt) % 2:
+            ap.error(f"--{opt.replace('_', '-')} must be an even integer >= 2, got "
+                     f"{getattr(args, opt)}")
     if args.runs < 1:
         ap.error(f"--runs must be >= 1, got {args.runs}")
     args.methods = [t for t in args.methods.split(",") if t]

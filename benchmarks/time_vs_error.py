@@ -18,8 +18,8 @@ given there), two settings each, at 64x64, lens sampling at 1..1024 spp. For eve
 - methods: `dofjax.defocus` with each of --methods (regions: exact+hidden, exact (the default
   method), sliced+hidden, sliced, sliced+sub4, sliced+sub8, pyramid+hidden, lens+hidden with 64
   lens points; small: pyramid, sliced, sliced+hidden, lens) on a `dofjax.render` at each
-  --sharp-spp (regions 16; small 4, 16) with a guard band (`Camera.padded`), single layer and K
-  peeled layers (--layers, 3; see `variants`), mirrors confined to their footprint
+  --sharp-spp (regions 16, 64; small 4, 16) with a guard band (`Camera.padded`), single layer
+  and K peeled layers (--layers, 3; see `variants`), mirrors confined to their footprint
   (`RGBD.mirror`); where the scene has mirrors, also the reflection blurred at the mirror's
   depth (the seed's listed inaccuracy); the seed's algorithm (`seed_defocus`, the "before" row);
   and `render_reference` at --spps;
@@ -96,7 +96,7 @@ for _name, _cases in defocus_regions.CASES.items():
 # --suite: its scenes and the defaults of the options it leaves out
 SUITES = {
     "regions": dict(scenes=list(defocus_regions.CASES), size=256, spps="16,64,256,1024,4096",
-                    sharp_spp="16", methods="exact+hidden,exact,sliced+hidden,sliced,"
+                    sharp_spp="16,64", methods="exact+hidden,exact,sliced+hidden,sliced,"
                     "sliced+sub4,sliced+sub8,pyramid+hidden,lens+hidden", lens_samples=64),
     "small": dict(scenes=["plane", "occluders", "mirror", "highlights", "depth_range"], size=64,
                   spps="1,4,16,64,256,1024", sharp_spp="4,16",
