@@ -303,7 +303,7 @@ def write_outputs(results, args, base, elapsed):
         fh.write("\n".join(lines) + "\n")
     import json
 
-    saved = {k: v for k, v in vars(args).items() if k not in ("cache", "out")}
+    saved = {k: v for k, v in vars(args).items() if k not in ("cache", "out", "jax_cache")}
     with open(base + ".json", "w") as fh:
         json.dump(dict(args=saved, summary=summ, results=results), fh, indent=1)
     plot(results, summ, base + ".png")
@@ -350,6 +350,19 @@ def plot(results, summ, file):
     plt.close(fig)
 
 
+def shown_command(argv, hidden=("--out", "--cache", "--jax-cache")) -> str:
+    """The command-line arguments without the options that name this machine's paths."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a.split("=")[0] in hidden:
+            skip = "=" not in a
+        else:
+            out.append(a)
+    return " ".join(out)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true",
@@ -372,12 +385,15 @@ def main(argv=None):
     ap.add_argument("--no-lens", action="store_true", help="skip the lens method's rows")
     ap.add_argument("--runs", type=int, default=None, help="timed runs after warm-up (5)")
     ap.add_argument("--cache", default=os.path.join(HERE, "results", "cache"))
+    ap.add_argument("--jax-cache", metavar="DIR", default=None,
+                    help="keep compiled programs in JAX's persistent compilation cache in DIR "
+                         "(`dofjax.use_compilation_cache`); a program compiled by an earlier "
+                         "run (or time_vs_error.py) is then loaded: its compile column is the "
+                         "load time")
     ap.add_argument("--out", default=None, help="output path without extension (default "
                     "benchmarks/results/defocus_regions; --quick: under --cache)")
     args = ap.parse_args(argv)
-    shown = [a for a in (sys.argv[1:] if argv is None else argv)
-             if not a.startswith(("--out", "--cache"))]
-    args.command = " ".join(shown)
+    args.command = shown_command(sys.argv[1:] if argv is None else argv)
     args.size = args.size or (64 if args.quick else 256)
     args.spp = args.spp or (256 if args.quick else 4096)
     args.spp_other = args.spp_other or (256 if args.quick else 1024)
@@ -402,6 +418,8 @@ def main(argv=None):
             ap.error(f"--scenes: unknown scene {s!r} (known: {', '.join(CASES)})")
     base = args.out or (os.path.join(args.cache, "defocus_regions_quick") if args.quick
                         else os.path.join(HERE, "results", "defocus_regions"))
+    if args.jax_cache:
+        dofjax.use_compilation_cache(args.jax_cache)
     code_hash()  # the renderer code this run imported: read once, before any reference
     todo = [(s, case) for s in args.scenes for case in CASES[s]
             if not args.quick or case[3]]

@@ -340,7 +340,7 @@ def write_outputs(results: list[dict], args, headline: list[str]):
     with open(out / "time_vs_error.json", "w") as fh:
         # No machine paths in the committed file: only the run's parameters.
         saved = {k: v for k, v in vars(args).items()
-                 if k not in ("out", "cache", "from_json", "scene_texts")}
+                 if k not in ("out", "cache", "from_json", "scene_texts", "jax_cache")}
         json.dump(dict(args=saved, results=results), fh, indent=1)
     lines = [
         "# Run time versus error",
@@ -529,10 +529,15 @@ def main(argv=None) -> int:
     p.add_argument("--scenes", default=None, help="comma-separated scene names")
     p.add_argument("--out", default=str(HERE / "results"), help="output folder")
     p.add_argument("--cache", default=str(HERE / "results" / "cache"), help="ground-truth cache")
+    p.add_argument("--jax-cache", metavar="DIR", default=None,
+                   help="keep compiled programs in JAX's persistent compilation cache in DIR "
+                        "(`dofjax.use_compilation_cache`); a program compiled by an earlier "
+                        "run (or defocus_regions.py) is then loaded: its compile column is the "
+                        "load time")
     p.add_argument("--from-json", metavar="PATH",
                    help="re-write the table, plot and headline from a previous run's JSON")
     args = p.parse_args(argv)
-    args.command = " ".join(sys.argv[1:] if argv is None else argv)
+    args.command = defocus_regions.shown_command(sys.argv[1:] if argv is None else argv)
     if args.from_json:
         saved = json.loads(Path(args.from_json).read_text())
         results = saved["results"]
@@ -576,6 +581,8 @@ def main(argv=None) -> int:
     for name in args.scenes:
         if name not in SETTINGS:
             p.error(f"--scenes: unknown scene {name!r} (known: {', '.join(SETTINGS)})")
+    if args.jax_cache:
+        dofjax.use_compilation_cache(args.jax_cache)
     code_hash()  # the renderer code this run imported: read once, before any reference
 
     results = []
