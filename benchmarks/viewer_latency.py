@@ -60,12 +60,12 @@ class Viewer:
 
 MEASURE = """async ([id, value]) => {
   const v = window.dofjaxView, slider = document.getElementById(id);
+  v.refineDelay = 1e9;  // live frames only: no exact refinement between changes
+  while (v.busy()) await new Promise((r) => setTimeout(r, 2));
   const n = v.painted.length;
   slider.value = value;
   slider.dispatchEvent(new Event("input", {bubbles: true}));
-  while (v.painted.length === n || v.inFlight || v.pending) {
-    await new Promise((r) => setTimeout(r, 2));
-  }
+  while (v.painted.length === n || v.busy()) await new Promise((r) => setTimeout(r, 2));
   return v.painted[v.painted.length - 1];
 }"""
 
@@ -81,8 +81,7 @@ def measure(page, url: str, changes: int, warmup: int, seed: int = 0) -> dict:
     for i in range(warmup + changes):
         slider = "focus" if i % 2 == 0 else "aperture"
         painted = page.evaluate(MEASURE, [slider, str(rng.randrange(0, 1001))])
-        page.wait_for_timeout(250)  # let a refinement (when live != final) finish
-        page.wait_for_function("!window.dofjaxView.inFlight")
+        page.wait_for_timeout(50)
         if i >= warmup:
             latencies.append(painted["latency"])
             server.append(painted["serverMs"])

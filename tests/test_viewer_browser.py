@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import dofjax
-from dofjax._viewer import Engine, bind, create_app, load_source
+from dofjax._viewer import Engine, _engine, bind, create_app, load_source
 
 CHROMIUM = "/usr/bin/chromium"
 QUADS = os.path.join(os.path.dirname(__file__), "..", "examples", "quads.json")
@@ -93,7 +93,12 @@ def test_drag_the_focus_slider(page):
     during = _painted(page)
     page.mouse.up()
     assert during > n0
-    page.wait_for_function("!window.dofjaxView.inFlight && !window.dofjaxView.pending")
+    # at rest the live frame is refined with the exact (final) method
+    page.wait_for_function("window.dofjaxView.painted.at(-1).exact && !window.dofjaxView.busy()",
+                           timeout=60_000)
+    final = page.evaluate("window.dofjaxView.painted.at(-1)")
+    assert final["quality"] == ("live" if _engine.LIVE_METHOD == _engine.FINAL_METHOD
+                                else "final")
     assert page.locator("#frame").screenshot() != before
     assert _value(page, "#focus-readout") < 3.0  # dragged towards the near end
 

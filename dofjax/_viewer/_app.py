@@ -69,7 +69,9 @@ def _bokeh(q) -> Bokeh:
 
 class FrameGate:
     """At most one frame renders at a time; a request waiting for its turn is answered at once
-    (204) when a newer one from the same page arrives: the latest value wins, nothing queues."""
+    (204) when a newer one from the same page arrives: the latest value wins, nothing queues.
+    The app has one gate per lane (live, final), so a slow exact render never holds up the
+    live frames."""
 
     def __init__(self):
         self._loop = None
@@ -107,7 +109,7 @@ class FrameGate:
 
 def create_app(engine: Engine, *, max_upload: int = MAX_UPLOAD) -> Starlette:
     """The Starlette app serving the page and the API for `engine`."""
-    gate = FrameGate()
+    gates = {"live": FrameGate(), "final": FrameGate()}
     source = engine.source
 
     def info(request: Request) -> JSONResponse:
@@ -148,6 +150,7 @@ def create_app(engine: Engine, *, max_upload: int = MAX_UPLOAD) -> Starlette:
             engine.check_camera(focus, aperture)
         except ValueError as exc:
             raise BadRequest(str(exc)) from None
+        gate = gates[quality]
         if not await gate.enter(client, seq):
             return Response(status_code=204, headers={"X-Dofjax-Dropped": "superseded"})
         try:
@@ -166,7 +169,7 @@ def create_app(engine: Engine, *, max_upload: int = MAX_UPLOAD) -> Starlette:
             ms = (asyncio.get_running_loop().time() - start) * 1e3
         finally:
             gate.leave()
-        exact = method == _engine.FINAL_METHOD or view == "depth"
+        exact = method == _engine.FINAL_METHOD or view != "image"  # overlays: no method
         return Response(body, media_type="image/jpeg", headers={
             "X-Dofjax-Seq": str(seq), "X-Dofjax-Exact": "1" if exact else "0",
             "X-Dofjax-Render-Ms": f"{ms:.1f}", "Cache-Control": "no-store"})

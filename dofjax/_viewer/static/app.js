@@ -7,7 +7,9 @@ const view = {
   info: null,
   focus: 1, aperture: 0, exposure: 0, blades: 0, rotation: 0, mode: "image",
   client: Math.random().toString(36).slice(2, 10),
-  seq: 0, inFlight: false, pending: null, lastChange: 0, refineTimer: null,
+  seq: 0, version: 0, paintedSeq: 0, lastChange: 0, refineTimer: null, refineDelay: 150,
+  lanes: {live: {inFlight: false, pending: false}, final: {inFlight: false, pending: false}},
+  busy: () => busy(),
   shownExact: true,
   painted: [],   // {seq, quality, latency (ms from the input event to the paint), serverMs}
 };
@@ -88,7 +90,12 @@ function showLegend() {
 }
 
 // ---------------------------------------------------------------- frames: the latest value wins
+// Two lanes: "live" frames (fast method) while a control moves, and a "final" frame (the exact
+// method) once it rests. Each lane has at most one request in flight and keeps only the newest
+// state to send next; a slow final render never holds up the live frames, and a final frame
+// whose state has changed since it was asked for is not shown.
 function changed(quality = "live") {
+  view.version += 1;
   view.lastChange = performance.now();
   showCamera();
   requestFrame(quality);
@@ -96,24 +103,29 @@ function changed(quality = "live") {
 
 function requestFrame(quality) {
   clearTimeout(view.refineTimer);
-  if (view.inFlight) {
-    // one request at a time; only the newest pending state is sent next
-    if (view.pending !== "final") view.pending = quality;
-    return;
-  }
+  const lane = view.lanes[quality];
+  if (lane.inFlight) { lane.pending = true; return; }
   sendFrame(quality);
 }
 
+function busy() {
+  return view.lanes.live.inFlight || view.lanes.live.pending ||
+         view.lanes.final.inFlight || view.lanes.final.pending;
+}
+
 async function sendFrame(quality) {
-  view.inFlight = true;
+  const lane = view.lanes[quality];
+  lane.inFlight = true;
   const seq = ++view.seq;
+  const version = view.version;
   const changeTime = view.lastChange;
   const q = `${cameraQuery()}&view=${view.mode}&quality=${quality}&exposure=${view.exposure}` +
             `&client=${view.client}&seq=${seq}`;
   let exact = true;
   try {
     const r = await fetch(`/api/frame?${q}`, {cache: "no-store"});
-    if (r.status === 200) {
+    const stale = seq < view.paintedSeq || (quality === "final" && version !== view.version);
+    if (r.status === 200 && !stale) {
       const blob = await r.blob();
       exact = r.headers.get("X-Dofjax-Exact") === "1";
       const serverMs = parseFloat(r.headers.get("X-Dofjax-Render-Ms"));
@@ -124,27 +136,27 @@ async function sendFrame(quality) {
       await img.decode();
       await new Promise((res) => requestAnimationFrame(() => res()));
       const latency = performance.now() - changeTime;
-      view.painted.push({seq, quality, latency, serverMs, exact});
+      view.paintedSeq = seq;
+      view.painted.push({seq, quality, latency, serverMs, exact, version});
       if (view.painted.length > 1000) view.painted.shift();
       if (old.startsWith("blob:")) URL.revokeObjectURL(old);
       view.shownExact = exact;
-      setStatus(`${quality === "live" && !exact ? "preview" : "exact"} ${serverMs.toFixed(0)} ms render, ` +
+      setStatus(`${exact ? "exact" : "preview"} ${serverMs.toFixed(0)} ms render, ` +
                 `${latency.toFixed(0)} ms to screen`);
-    } else if (r.status !== 204) {
+    } else if (r.status !== 200 && r.status !== 204) {
       const body = await r.json().catch(() => ({error: r.statusText}));
       setStatus(body.error || `error ${r.status}`, true);
     }
   } catch (err) {
     setStatus(`the viewer server is not answering (${err.message})`, true);
   } finally {
-    view.inFlight = false;
+    lane.inFlight = false;
   }
-  if (view.pending) {
-    const next = view.pending;
-    view.pending = null;
-    sendFrame(next);
-  } else if (!exact) {
-    view.refineTimer = setTimeout(() => requestFrame("final"), 150);  // progressive refinement
+  if (lane.pending) {
+    lane.pending = false;
+    sendFrame(quality);
+  } else if (quality === "live" && !exact && !view.lanes.live.inFlight) {
+    view.refineTimer = setTimeout(() => requestFrame("final"), view.refineDelay);
   }
 }
 
@@ -163,7 +175,7 @@ function bindControls() {
     view.blades = polygon ? Math.min(16, Math.max(3, blades || 6)) : 0;
     view.rotation = ((+$("rotation").value % 360) + 360) % 360;
     setStatus(polygon ? "new bokeh: compiling it once..." : "rendering...");
-    changed("final");
+    changed();
   };
   $("shape").addEventListener("change", bokeh);
   $("blades").addEventListener("change", bokeh);
@@ -193,7 +205,7 @@ function bindControls() {
 function setMode(mode) {
   view.mode = mode;
   for (const r of document.querySelectorAll("input[name=view]")) r.checked = r.value === mode;
-  changed("final");
+  changed();
 }
 
 function nudgeFocus(steps) {
@@ -232,7 +244,7 @@ async function pickFocus(e) {
   readout.textContent = body.background
     ? `pixel (${x}, ${y}): background (infinitely far); focus set to the far end, ${fmt(body.focus)}`
     : `pixel (${x}, ${y}): z-depth ${fmt(body.depth)}; focus set there`;
-  changed("final");
+  changed();
 }
 
 // ---------------------------------------------------------------- reference
@@ -347,7 +359,7 @@ async function pollFit() {
 function applyFit() {
   if (!view.fitted) return;
   setCamera(view.fitted.focus, view.fitted.aperture);
-  changed("final");
+  changed();
 }
 
 // ---------------------------------------------------------------- start
@@ -368,7 +380,7 @@ async function start() {
   setCamera(i.focus, i.aperture);
   bindControls();
   document.body.dataset.ready = "1";
-  changed("final");
+  changed();
 }
 
 start();
