@@ -159,3 +159,22 @@ def cached_reference(scene, camera, scene_file, spp: int, seed: int, cache: str,
     with open(stem + ".json", "w") as fh:
         json.dump(dict(code=[code_hash()], info=info, spp=spp, seed=seed), fh)
     return img, info
+
+
+@functools.cache
+def source_version() -> str:
+    """The dofjax source a run used, for result files: "git <commit>", with a note when dofjax/
+    has uncommitted changes; "unknown" outside a git checkout. Read once per process."""
+    import subprocess
+
+    import dofjax
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(dofjax.__file__)))
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, text=True,
+                              capture_output=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "dofjax"], cwd=root,
+                               text=True, capture_output=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+    return f"git {head}" + (" with uncommitted changes to dofjax/" if dirty else "")

@@ -48,7 +48,7 @@ import time
 import jax
 import numpy as np
 import scipy.ndimage as ndi
-from _common import cached_reference, code_hash, method_options, timed
+from _common import cached_reference, code_hash, method_options, source_version, timed
 from tqdm.auto import tqdm
 
 import dofjax
@@ -270,7 +270,7 @@ def write_outputs(results, args, base, elapsed):
         "region's reference noise removed in quadrature. Time: the defocus call, median after "
         f"warm-up ({args.runs} runs; 1 for calls over 2 s), compile separate; "
         f"{platform.machine()}, {os.cpu_count()} CPU cores shared with other jobs, "
-        f"jax {jax.__version__}, renderer code {code_hash()}. Run time {elapsed / 60:.0f} min.\n",
+        f"jax {jax.__version__}, dofjax {source_version()}. Run time {elapsed / 60:.0f} min.\n",
         f"Reference noise (whole image): median {statistics.median(noises):.4f}, "
         f"max {max(noises):.4f}.\n",
         "## Medians over the cases\n",
@@ -382,6 +382,9 @@ def main(argv=None):
                          "hidden=True and on peeled layers; lens: single-layer, on the cases "
                          "marked for it; +subK: peeled layers)")
     ap.add_argument("--scenes", default=",".join(CASES), help="comma-separated scene names")
+    ap.add_argument("--cases", choices=("all", "lens"), default=None,
+                    help="all cases, or only those marked for the lens method (one per scene; "
+                         "default all, --quick: lens)")
     ap.add_argument("--no-lens", action="store_true", help="skip the lens method's rows")
     ap.add_argument("--runs", type=int, default=None, help="timed runs after warm-up (5)")
     ap.add_argument("--cache", default=os.path.join(HERE, "results", "cache"))
@@ -421,8 +424,10 @@ def main(argv=None):
     if args.jax_cache:
         dofjax.use_compilation_cache(args.jax_cache)
     code_hash()  # the renderer code this run imported: read once, before any reference
+    source_version()
+    args.cases = args.cases or ("lens" if args.quick else "all")
     todo = [(s, case) for s in args.scenes for case in CASES[s]
-            if not args.quick or case[3]]
+            if args.cases == "all" or case[3]]
     # cases with the same largest |c| share the window and guard band, hence compiled programs:
     # run them one after another
     todo.sort(key=lambda t: (t[1][2], t[0] == "mirror_tilted"))

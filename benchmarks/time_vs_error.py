@@ -55,7 +55,7 @@ import defocus_regions
 import jax
 import jax.numpy as jnp
 import numpy as np
-from _common import cached_reference, code_hash, method_options, timed
+from _common import cached_reference, code_hash, method_options, source_version, timed
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 import dofjax
@@ -354,7 +354,8 @@ def write_outputs(results: list[dict], args, headline: list[str]):
         "band of the largest |CoC| + 2 px (the seed's row: 1 spp, no guard band, as the seed "
         f"did); median of {args.runs} runs after warm-up (calls over 2 s: one run) on "
         f"{platform.machine()} with {os.cpu_count()} CPU cores shared with other jobs "
-        f"({jax.default_backend()}), jax {jax.__version__}. "
+        f"({jax.default_backend()}), jax {jax.__version__}, dofjax "
+        f"{getattr(args, 'source', None) or source_version()}. "
         "Times in ms unless marked s. *time* is the method alone, *pipeline* adds the sharp "
         "`render` (with its layers) that defocus needs; *fwd+grad* is one loss value and its "
         "reverse-mode gradient w.r.t. (focus, aperture). Lens sampling is timed on the first "
@@ -584,6 +585,7 @@ def main(argv=None) -> int:
     if args.jax_cache:
         dofjax.use_compilation_cache(args.jax_cache)
     code_hash()  # the renderer code this run imported: read once, before any reference
+    args.source = source_version()
 
     results = []
     args.scene_texts = {}
