@@ -260,21 +260,38 @@ def box_hit(b: Boxes, idx, o, d, t, tmin) -> Hit:
 # Triangles (Moller-Trumbore)
 
 
+def _triangle(v0, e1, e2, dd, oo, tm):
+    """Moller-Trumbore on split components (shared by `triangle_t` and `triangle_rows`, so both
+    compute every t with the same arithmetic). Returns (t, det): t +inf where missed."""
+    pvec = _cross3(dd, e2)
+    det = _dot3(pvec, e1)
+    tvec = _sub3(oo, v0)
+    qvec = _cross3(tvec, e1)
+    u = safe_div(_dot3(tvec, pvec), det, -1.0)
+    v = safe_div(_dot3(dd, qvec), det, -1.0)
+    t = safe_div(_dot3(e2, qvec), det, jnp.inf)
+    ok = (u >= 0) & (v >= 0) & (u + v <= 1) & (t > tm)
+    return jnp.where(ok, t, jnp.inf)
+
+
 def triangle_t(tr: Triangles, o, d, tmin) -> Float[Array, "n p"]:
     """Moller & Trumbore (1997), two-sided; a ray in the triangle's plane (det = 0) misses."""
     v0 = _prims3(tr.v0)
     e1 = _sub3(_prims3(tr.v1), v0)
     e2 = _sub3(_prims3(tr.v2), v0)
-    dd = _rays3(d)
-    pvec = _cross3(dd, e2)  # (N, P) each
-    det = _dot3(pvec, e1)
-    tvec = _sub3(_rays3(o), v0)
-    qvec = _cross3(tvec, e1)
-    u = safe_div(_dot3(tvec, pvec), det, -1.0)
-    v = safe_div(_dot3(dd, qvec), det, -1.0)
-    t = safe_div(_dot3(e2, qvec), det, jnp.inf)
-    ok = (u >= 0) & (v >= 0) & (u + v <= 1) & (t > tmin[:, None])
-    return jnp.where(ok, t, jnp.inf)
+    return _triangle(v0, e1, e2, _rays3(d), _rays3(o), tmin[:, None])
+
+
+def triangle_rows(v0, e1, e2, o, d, tmin):
+    """`triangle_t` for one triangle per ray: v0 and edges e1 = v1 - v0, e2 = v2 - v0 (..., 3),
+    rays o, d (..., 3) and tmin (...) broadcast against them.
+
+    Returns (t (...), facing (...) bool: the winding normal e1 x e2 points against d)."""
+    split = lambda x: (x[..., 0], x[..., 1], x[..., 2])  # noqa: E731
+    dd, a, b, c = split(d), split(v0), split(e1), split(e2)
+    t = _triangle(a, b, c, dd, split(o), tmin)
+    facing = _dot3(dd, _cross3(b, c)) < 0
+    return t, facing
 
 
 def triangle_hit(tr: Triangles, idx, o, d, t, tmin) -> Hit:
@@ -312,8 +329,29 @@ def materialise(*vectors):
     return tuple(jnp.matmul(v, eye, precision=jax.lax.Precision.HIGHEST) for v in vectors)
 
 
+def _indexed(prims) -> bool:
+    """Whether `prims` is a triangle set with a BVH (`_bvh.IndexedTriangles`)."""
+    return hasattr(prims, "links")
+
+
+def nearest_triangle(tr, o, d, tmin):
+    """Nearest triangle (t (N,), index (N,)) through the BVH. The value of t is the traversal's;
+    its derivative in the rays is that of t recomputed from the index (the loop has none)."""
+    from ._bvh import nearest_triangle as traverse
+
+    t_bvh, idx = traverse(tr, o, d, tmin)
+    v0 = tr.v0[idx]
+    t, _ = triangle_rows(v0, tr.v1[idx] - v0, tr.v2[idx] - v0, o, d, tmin)
+    ok = jnp.isfinite(t_bvh) & jnp.isfinite(t)
+    tangent = jnp.where(ok, t - jax.lax.stop_gradient(t), 0.0)  # zero, carrying the derivative
+    return jnp.where(jnp.isfinite(t_bvh), t_bvh + tangent, jnp.inf), idx
+
+
 def nearest(scene, o, d, tmin) -> tuple[Float[Array, " n"], Int[Array, " n"], Hit | None]:
     """Nearest hit over every primitive type present in `scene` (absent types trace nothing).
+
+    Triangles with a BVH (`_bvh.IndexedTriangles`) are found through it: the same t and the same
+    triangle as the all-pairs test.
 
     Returns:
         t: (N,) ray parameter of the nearest hit beyond `tmin`, +inf on a miss.
@@ -330,9 +368,12 @@ def nearest(scene, o, d, tmin) -> tuple[Float[Array, " n"], Int[Array, " n"], Hi
         prims = getattr(scene, name)
         if prims is None or prims.material.shape[0] == 0:
             continue
-        ts = t_fn(prims, o, d, tmin)
-        idx = jnp.argmin(ts, axis=-1)
-        t = jnp.take_along_axis(ts, idx[:, None], axis=-1)[:, 0]
+        if _indexed(prims):
+            t, idx = nearest_triangle(prims, o, d, tmin)
+        else:
+            ts = t_fn(prims, o, d, tmin)
+            idx = jnp.argmin(ts, axis=-1)
+            t = jnp.take_along_axis(ts, idx[:, None], axis=-1)[:, 0]
         # Details are evaluated at a finite placeholder where this type missed, so no inf * 0 = NaN
         # enters any branch (not even an unselected one, which would poison gradients).
         this = hit_fn(prims, idx, o, d, jnp.where(jnp.isfinite(t), t, 0.0), tmin)
@@ -343,15 +384,25 @@ def nearest(scene, o, d, tmin) -> tuple[Float[Array, " n"], Int[Array, " n"], Hi
     return best_t, material, hit
 
 
-def nearest_t(scene, o, d, tmin) -> Float[Array, " n"]:
-    """Only the nearest hit parameter (for shadow rays): no normals, no materials."""
+def nearest_t(scene, o, d, tmin, tmax=None) -> Float[Array, " n"]:
+    """Only the nearest hit parameter (for shadow rays): no normals, no materials.
+
+    With `tmax` (N,), the result only has to be right as `t >= tmax` (a BVH stops a ray at its
+    first triangle hit before tmax). Not differentiable through BVH triangles.
+    """
     o, d = materialise(o, d)
     best_t = jnp.full((o.shape[0],), jnp.inf, dtype=d.dtype)
     for name, (t_fn, _) in PRIMITIVES.items():
         prims = getattr(scene, name)
         if prims is None or prims.material.shape[0] == 0:
             continue
-        best_t = jnp.minimum(best_t, jnp.min(t_fn(prims, o, d, tmin), axis=-1))
+        if _indexed(prims):
+            from ._bvh import nearest_triangle as traverse
+
+            t = traverse(prims, o, d, tmin, tmax=tmax)[0]
+        else:
+            t = jnp.min(t_fn(prims, o, d, tmin), axis=-1)
+        best_t = jnp.minimum(best_t, t)
     return best_t
 
 

@@ -13,6 +13,12 @@ so changing them never recompiles.
 
 Memory: rays are processed in chunks (`lax.map`) sized so that one chunk's ray x primitive arrays
 stay around `_CHUNK_ELEMENTS` entries, whatever the image size and primitive count.
+
+Meshes: `render`, `trace` and `render_reference` put a scene's triangles in a bounding volume
+hierarchy (`_bvh`, built on the host, cached) when there are at least `_bvh.MIN_TRIANGLES` of
+them and their positions are concrete; primary, shadow, mirror and peeling rays then walk it
+instead of testing every triangle, with the same hits. Traced positions (differentiating
+through the vertices) keep the all-pairs test.
 """
 
 from __future__ import annotations
@@ -23,12 +29,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._bvh import index_triangles, nearest_triangle
 from ._camera import Camera, check_camera
 from ._intersect import (
     PRIMITIVES,
     Hit,
     _cross3,
     _dot3,
+    _indexed,
     _prims3,
     _rays3,
     _slabs,
@@ -131,7 +139,8 @@ def _shadow_free(scene, origins, to_light, tmax):
     """True where nothing lies between `origins` (N, L, 3) and t = tmax along `to_light`."""
     n, nl = to_light.shape[:2]
     o, d = materialise(origins.reshape(-1, 3), to_light.reshape(-1, 3))  # before tmin reads them
-    t = nearest_t(scene, o, d, _tmin(o, d))
+    tmax = jnp.broadcast_to(jnp.asarray(tmax, dtype=d.dtype), (o.shape[0],))
+    t = nearest_t(scene, o, d, _tmin(o, d), tmax)
     return (t >= tmax).reshape(n, nl)
 
 
@@ -372,6 +381,10 @@ def _front_t(scene: Scene, o, d, tmin, closed):
             t_near = jnp.maximum(jnp.maximum(slabs[0][0], slabs[1][0]), slabs[2][0])
             t_far = jnp.minimum(jnp.minimum(slabs[0][1], slabs[1][1]), slabs[2][1])
             t = jnp.where((t_near <= t_far) & (t_near > tm), t_near, jnp.inf)
+        elif name == "triangles" and _indexed(prims):
+            t = nearest_triangle(prims, o, d, tmin, skip_back=closed)[0]
+            best = jnp.minimum(best, t)
+            continue
         elif name == "triangles":
             v0 = _prims3(prims.v0)
             n = _cross3(_sub3(_prims3(prims.v1), v0), _sub3(_prims3(prims.v2), v0))
@@ -484,7 +497,10 @@ def _peel(scene: Scene, o, d, layers: int, closed=None, planes=None):
 
 
 def _chunk_size(scene: Scene) -> int:
-    prims = max(1, sum(scene.primitive_counts.values()))
+    counts = scene.primitive_counts
+    if _indexed(scene.triangles):  # a ray's BVH walk holds a few values, not one per triangle
+        counts["triangles"] = 1
+    prims = max(1, sum(counts.values()))
     lights = 0
     for ls in (scene.point_lights, scene.directional_lights):
         if ls is not None:
@@ -515,7 +531,15 @@ def _chunked(fn, chunk: int, *arrays):
 # Public API
 
 
-@eqx.filter_jit
+def with_bvh(scene: Scene, closed=None):
+    """`scene` with its triangles in a BVH (`_bvh.index_triangles`) where that pays off; `closed`
+    (see `_closed_triangles`) permuted alike. Returns (scene, closed)."""
+    tris, closed = index_triangles(scene.triangles, closed)
+    if tris is not scene.triangles:
+        scene = eqx.tree_at(lambda s: s.triangles, scene, tris)
+    return scene, closed
+
+
 def trace(scene: Scene, origins: Float[Array, "*b 3"], directions: Float[Array, "*b 3"]) -> Traced:
     """Shade rays `origins + t * directions` through `scene` (the one shading path of dofjax).
 
@@ -530,6 +554,13 @@ def trace(scene: Scene, origins: Float[Array, "*b 3"], directions: Float[Array, 
         `scene.max_bounces > 0`. Hits closer than a tiny relative epsilon to the origin are ignored,
         so a ray starting on a surface does not hit that surface at t = 0.
     """
+    if isinstance(scene, Scene):
+        scene = with_bvh(scene)[0]
+    return _trace(scene, origins, directions)
+
+
+@eqx.filter_jit
+def _trace(scene: Scene, origins, directions) -> Traced:
     origins = jnp.asarray(origins)
     directions = jnp.asarray(directions)
     if origins.shape[-1:] != (3,) or directions.shape[-1:] != (3,):
@@ -871,4 +902,5 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
     check_scene("render", scene)
     check_camera(camera, "render")
     closed = None if layers is None else _closed_triangles(scene)
+    scene, closed = with_bvh(scene, closed)
     return _render(scene, camera, int(spp), None if layers is None else int(layers), closed)

@@ -201,6 +201,9 @@ def render_reference(
         TypeError: scene not a `Scene`, camera not a `Camera`, key not a PRNG key.
     """
     _validate(spp, shape, blades, rotation, ratio, chunk, sampler, scene, camera, key)
+    from ._raycast import with_bvh
+
+    scene = with_bvh(scene)[0]
     spp = int(spp)
     blades = None if blades is None else int(blades)
     chunk = default_chunk(camera, spp) if chunk is None else int(min(chunk, spp))
