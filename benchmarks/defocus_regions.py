@@ -80,6 +80,7 @@ CASES = {
 }
 LENS_SAMPLES = 64
 SCALE_LAYERS = 3  # peeled layers of the render whose largest |c| sets a case's aperture
+COC_BANDS = (0, 1, 2, 3, 4, 6, 8, 12, 16, 24, math.inf)  # |c| bands (px) of the interior table
 
 
 def scene_path(name):
@@ -129,8 +130,8 @@ def _edges(c):
 
 
 def region_masks(scene, cam):
-    """{"interior", "edges", "whole"}: boolean (H, W) masks of the module docstring's regions,
-    from a pixel-centre render of the frame."""
+    """({"interior", "edges", "whole"}: boolean (H, W) masks of the module docstring's regions,
+    |c| (H, W) of what each pixel shows), from a pixel-centre render of the frame."""
     sharp = dofjax.render(scene, cam, spp=1)
     c = np.asarray(dofjax.coc_radius(np.asarray(sharp.depth, np.float64), cam), np.float64)
     edge, reach = _edges(c)
@@ -151,7 +152,7 @@ def region_masks(scene, cam):
             src = edge & (np.ceil(reach).astype(int) == lev)
             near |= ndi.distance_transform_edt(~src) <= lev + 2.0
         near |= ndi.distance_transform_edt(~edge) <= np.abs(c) + 2.0
-    return dict(interior=~near, edges=near, whole=np.ones(c.shape, bool))
+    return dict(interior=~near, edges=near, whole=np.ones(c.shape, bool)), np.abs(c)
 
 
 def rmse(a, b, mask):
@@ -189,8 +190,17 @@ def run_case(name, scene, base, case, args, bar):
         bar.set_postfix_str(f"{name}, {label}: reference half {seed + 1}/2")
         halves.append(cached_reference(scene, cam, path, spp // 2, seed, args.cache)[0])
     ref = 0.5 * (halves[0] + halves[1])
-    masks = region_masks(scene, cam)
+    masks, abs_c = region_masks(scene, cam)
     noise = {k: rmse(halves[0], halves[1], m) / 2 for k, m in masks.items()}
+    band = np.digitize(abs_c, COC_BANDS[1:-1])  # interior pixels by |c|
+    inner = masks["interior"]
+
+    def band_sums(img, ref_img, scale=1.0):
+        d2 = scale * np.mean((np.asarray(img, np.float64) - ref_img) ** 2, axis=-1)
+        return [float(d2[inner & (band == b)].sum()) for b in range(len(COC_BANDS) - 1)]
+
+    counts = [int((inner & (band == b)).sum()) for b in range(len(COC_BANDS) - 1)]
+    noise_bands = band_sums(halves[0], halves[1], 0.25)
     pcam = cam.padded(margin)
     sharp = dofjax.render(scene, pcam, spp=args.sharp_spp, layers=args.layers)
     single = dict(reflection=sharp.reflection, reflection_depth=sharp.reflection_depth,
@@ -217,13 +227,15 @@ def run_case(name, scene, base, case, args, bar):
             e = rmse(out, ref, m)
             row[f"rmse_{k}"] = e
             row[f"rmse_n_{k}"] = math.sqrt(max(e * e - noise[k] ** 2, 0.0))
+        row["band_sse"] = band_sums(out, ref)
         rows.append(row)
         tqdm.write(f"  {name:16s} {label:22s} {vlabel:34s} interior {row['rmse_interior']:.4f} "
                    f"edges {row['rmse_edges']:.4f} whole {row['rmse_whole']:.4f} "
                    f"(noise {noise['whole']:.4f})  {1e3 * t:9.1f} ms  compile {compile_s:.1f} s")
     return dict(scene=name, case=label, focus=focus, max_coc=max_coc,
                 aperture=float(cam.aperture_radius), margin=margin, width=cam.width,
-                height=cam.height, ref_spp=spp, noise=noise,
+                height=cam.height, ref_spp=spp, noise=noise, band_counts=counts,
+                band_noise_sse=noise_bands,
                 fractions={k: float(m.mean()) for k, m in masks.items()}, rows=rows)
 
 
@@ -245,6 +257,33 @@ def summary(results):
             "time", "compile")},
             max_rmse_n_interior=max(row["rmse_n_interior"] for row in rows),
             max_rmse_whole=max(row["rmse_whole"] for row in rows)))
+    return out
+
+
+def band_table(results):
+    """Markdown rows: interior RMSE per |c| band (pooled over cases) per method, noise first."""
+    nb = len(COC_BANDS) - 1
+    count = [sum(r["band_counts"][b] for r in results) for b in range(nb)]
+    keep = [b for b in range(nb) if count[b] > 0]
+    names = [f"{COC_BANDS[b]:g}-{COC_BANDS[b + 1]:g}" if math.isfinite(COC_BANDS[b + 1])
+             else f">= {COC_BANDS[b]:g}" for b in keep]
+    out = ["| \\|c\\| px | " + " | ".join(names) + " |",
+           "|---|" + "---:|" * len(keep),
+           "| pixels | " + " | ".join(str(count[b]) for b in keep) + " |",
+           "| reference noise | " + " | ".join(
+               fmt(math.sqrt(sum(r["band_noise_sse"][b] for r in results) / count[b]))
+               for b in keep) + " |"]
+    methods = []
+    for r in results:
+        methods += [row["method"] for row in r["rows"] if row["method"] not in methods]
+    for m in methods:
+        cells = []
+        for b in keep:
+            pairs = [(row["band_sse"][b], r["band_counts"][b]) for r in results
+                     for row in r["rows"] if row["method"] == m]
+            n = sum(p[1] for p in pairs)
+            cells.append(fmt(math.sqrt(sum(p[0] for p in pairs) / n)) if n else "-")
+        out.append(f"| {m} | " + " | ".join(cells) + " |")
     return out
 
 
@@ -284,6 +323,10 @@ def write_outputs(results, args, base, elapsed):
             f"{fmt(s['rmse_n_interior'])} ({fmt(s['max_rmse_n_interior'])}) | "
             f"{fmt(s['rmse_edges'])} | {fmt(s['rmse_whole'])} | {fmt(s['rmse_n_whole'])} | "
             f"{fmt(s['max_rmse_whole'])} | {fmt_ms(s['time'])} | {s['compile']:.1f} |")
+    lines += ["", "## Interior RMSE by |c| band, pooled over the cases\n",
+              "Interior pixels binned by the |c| of what they show (pixel centre); RMSE over "
+              "each band's pixels of every case, the reference noise in the first row.\n"]
+    lines += band_table(results)
     lines += ["", "![interior and whole-image RMSE per case, time vs error](defocus_regions.png)",
               "", "## Every case\n",
               "| scene | case | max \\|c\\| | ref spp | interior px | noise int / edges / whole "
