@@ -325,7 +325,8 @@ def write_outputs(results, args, base, elapsed):
             f"{fmt(s['max_rmse_whole'])} | {fmt_ms(s['time'])} | {s['compile']:.1f} |")
     lines += ["", "## Interior RMSE by |c| band, pooled over the cases\n",
               "Interior pixels binned by the |c| of what they show (pixel centre); RMSE over "
-              "each band's pixels of every case, the reference noise in the first row.\n"]
+              "each band's pixels of every case with that row; pixel count and reference noise "
+              "first.\n"]
     lines += band_table(results)
     lines += ["", "![interior and whole-image RMSE per case, time vs error](defocus_regions.png)",
               "", "## Every case\n",
