@@ -5,12 +5,13 @@
 
 For each size N, starts `dofjax view examples/quads.json --width N --height N` twice with one
 fresh persistent compilation cache (the first run compiles and fills it, the second loads from
-it) and times the command to its "ready" line. On the second server it drives Debian's headless
-Chromium (Playwright, /usr/bin/chromium): each change moves the focus or the aperture slider
-(alternately, to seeded random positions) and dispatches the slider's `input` event, as a drag
-does; the page reports the time from that event to the frame painted with the new value
-(`window.dofjaxView.painted`: after the image's decode and the next animation frame). Medians
-over `--changes` changes after `--warmup`. `--screenshot` saves the page at the scene's own
+it) and times the command to its "ready" line (the live method compiled) and to the exact
+method's (compiled after "ready"; measuring starts once it is). On the second server it drives
+Debian's headless Chromium (Playwright, /usr/bin/chromium): each change moves the focus or the
+aperture slider (alternately, to seeded random positions) and dispatches the slider's `input`
+event, as a drag does; the page reports the time from that event to the frame painted with the
+new value (`window.dofjaxView.painted`: after the image's decode and the next animation frame).
+Medians over `--changes` changes after `--warmup`. `--screenshot` saves the page at the scene's own
 size (512x384) after a reference run and a click to focus. Writes
 benchmarks/results/viewer_latency.md and .png.
 """
@@ -52,6 +53,14 @@ class Viewer:
         if self.url is None:
             raise SystemExit("viewer_latency: dofjax view did not start:\n" + "".join(lines))
         self.ready_seconds = time.perf_counter() - start
+        self.exact_seconds = None
+        for line in self.proc.stdout:  # the exact method compiles after "ready"
+            if "exact method is compiled" in line:
+                self.exact_seconds = time.perf_counter() - start
+                break
+        if self.exact_seconds is None:
+            raise SystemExit("viewer_latency: dofjax view stopped before the exact method "
+                             "compiled")
 
     def close(self):
         self.proc.terminate()
@@ -136,9 +145,11 @@ def main(argv=None) -> None:
                     warm.close()
             load = os.getloadavg()[0]
             rows.append(dict(size=n, cold=cold.ready_seconds, warm=warm.ready_seconds,
+                             cold_exact=cold.exact_seconds, warm_exact=warm.exact_seconds,
                              load=load, **m))
             print(f"{n}x{n}: ready {cold.ready_seconds:.1f} s (compiling), "
-                  f"{warm.ready_seconds:.1f} s (cache); slider to paint median "
+                  f"{warm.ready_seconds:.1f} s (cache), exact method {cold.exact_seconds:.1f} / "
+                  f"{warm.exact_seconds:.1f} s; slider to paint median "
                   f"{m['median']:.0f} ms, p90 {m['p90']:.0f} ms (render {m['server']:.0f} ms), "
                   f"load {load:.1f}", flush=True)
         if a.screenshot:
@@ -158,7 +169,8 @@ def write(rows, a, browser_version) -> None:
 
     cpus = os.cpu_count()
     head = ("| size | slider to paint, median ms | p90 ms | server render + encode, median ms"
-            " | ready, compiling s | ready, from the cache s | load average |")
+            " | ready, compiling s | ready, from the cache s | exact method compiled, compiling"
+            " / from the cache s | load average |")
     lines = [
         "# dofjax view: latency in a real browser",
         "",
@@ -169,16 +181,17 @@ def write(rows, a, browser_version) -> None:
         "processes share the cores). Slider to paint: from the slider's input event to the "
         "next animation frame after the new image is decoded, "
         f"median over {a.changes} changes after {a.warmup}. Ready: from the command to its "
-        "'ready' line, with a fresh persistent compilation cache (compiling) and again with it "
-        "filled.",
+        "'ready' line (the live method compiled), with a fresh persistent compilation cache "
+        "(compiling) and again with it filled; the exact method compiles after 'ready', beside "
+        "the running server.",
         "",
         head,
-        "|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(f"| {r['size']}x{r['size']} | {r['median']:.0f} | {r['p90']:.0f} | "
                      f"{r['server']:.0f} | {r['cold']:.1f} | {r['warm']:.1f} | "
-                     f"{r['load']:.1f} |")
+                     f"{r['cold_exact']:.1f} / {r['warm_exact']:.1f} | {r['load']:.1f} |")
     os.makedirs(os.path.dirname(a.out), exist_ok=True)
     with open(a.out + ".md", "w") as f:
         f.write("\n".join(lines) + "\n")

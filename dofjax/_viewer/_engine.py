@@ -135,6 +135,8 @@ class Engine:
         self.fit_options = dict(fit_options or {})
         self._programs: OrderedDict = OrderedDict()
         self._programs_lock = threading.Lock()
+        self._warming: dict = {}
+        self.final_ready = threading.Event()
         self.reference = Job("reference")
         self.fit = Job("fit")
         self.target = source.target
@@ -173,21 +175,29 @@ class Engine:
                 self._programs.popitem(last=False)
             return f
 
-    def warm_up(self, bokeh: Bokeh = Bokeh()) -> None:
+    def warm_up(self, bokeh: Bokeh = Bokeh(), *, background: bool = False) -> None:
         """Compile (or load from the persistent cache) the live and final programs, side by
-        side (XLA compiles a program on one core)."""
+        side (XLA compiles a program on one core).
+
+        background: return once the live program is ready; the final one goes on compiling
+        (`final_ready` is set when it is), and a final frame asked for meanwhile waits for it.
+        """
         errors = []
 
         def run(method):
             try:
                 self.image(self.camera_focus(), self.camera_aperture(), bokeh, method)
-            except Exception as exc:  # re-raised below, in the caller's thread
+            except Exception as exc:  # re-raised in the caller's thread, or at the first frame
                 errors.append(exc)
+            if method == FINAL_METHOD:
+                self.final_ready.set()
 
-        threads = [threading.Thread(target=run, args=(m,)) for m in {LIVE_METHOD, FINAL_METHOD}]
-        for t in threads:
+        methods = [LIVE_METHOD] + ([FINAL_METHOD] if FINAL_METHOD != LIVE_METHOD else [])
+        threads = [threading.Thread(target=run, args=(m,), daemon=True) for m in methods]
+        for m, t in zip(methods, threads):
+            self._warming[(m, bokeh)] = t
             t.start()
-        for t in threads:
+        for t in threads[:1] if background else threads:
             t.join()
         if errors:
             raise errors[0]
@@ -202,6 +212,9 @@ class Engine:
 
     def image(self, focus: float, aperture: float, bokeh: Bokeh,
               method: str | None = FINAL_METHOD) -> np.ndarray:
+        warming = self._warming.get((method, bokeh))
+        if warming is not None and warming is not threading.current_thread():
+            warming.join()  # one compilation, not a second one beside it
         f = self.program(method, bokeh)
         dtype = np.asarray(self.camera.focus_distance).dtype
         return np.asarray(f(np.asarray(focus, dtype), np.asarray(aperture, dtype)))

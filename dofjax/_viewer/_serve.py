@@ -1,5 +1,6 @@
 """Start the viewer: bind the port first (a port in use fails before any work), load and
-render the input, compile the defocus, say "ready", then serve with uvicorn until Ctrl-C."""
+render the input, compile the live defocus, say "ready", then serve with uvicorn until Ctrl-C
+(the exact method's program goes on compiling beside it; its first frame waits for it)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import errno
 import os
 import socket
 import sys
+import threading
 import time
 import webbrowser
 
@@ -62,10 +64,17 @@ def serve(path: str, *, host: str = "127.0.0.1", port: int = 0, open_browser: bo
         h, w = source.depth.shape
         print(f"dofjax view: {source.name}, {w}x{h}, rendered in "
               f"{time.perf_counter() - start:.1f} s; compiling the defocus", file=out, flush=True)
-        engine.warm_up()
+        engine.warm_up(background=True)
         app = create_app(engine, max_upload=max_upload)
         print(f"dofjax view: ready at {url} ({time.perf_counter() - start:.1f} s); Ctrl-C stops",
               file=out, flush=True)
+
+        def report():
+            engine.final_ready.wait()
+            print(f"dofjax view: the exact method is compiled too "
+                  f"({time.perf_counter() - start:.1f} s)", file=out, flush=True)
+
+        threading.Thread(target=report, daemon=True).start()
         if open_browser:
             webbrowser.open(url)
         config = uvicorn.Config(app, log_level="warning", lifespan="off")
