@@ -8,8 +8,9 @@ methods were not tuned on (issue 46, item 2).
 Scenes: `benchmarks/scenes/{ground_receding,occluders_wall,checker_spheres,mirror_tilted}.json`
 (unlit textured surfaces: pixels show texture values). Cases (`CASES`): per scene, focus in front
 of, inside and behind the scene, the aperture scaled so the largest |c| over the sharp input
-(guard band, peeled layers and mirror layer included) is 4, 12 or 24 px. Every case with the
-same largest |c| uses the same window and guard band, so they share compiled programs.
+(a guard band of that |c| + 2 px, peeled layers and mirror layer included) is 4, 12 or 24 px.
+Every case is defocused with the window `WINDOW` (24 px) and a guard band of 26 px, so all
+cases share one compiled program per method and input kind.
 
 Reference: `render_reference` at --spp (4096; --spp-other, 1024, on the cases not marked for
 the lens method, to bound the run time), as two independent halves (seeds 0 and 1) averaged; the
@@ -18,7 +19,7 @@ benchmarks/results/cache/ (git-ignored; `_common.cached_reference`: keyed by the
 contents, camera, spp and seed, stored with the renderer's code hash and reused under other code
 only if a 4-spp probe renders the same).
 
-Defocus: a sharp render with a guard band of the largest |c| + 2 px (`Camera.padded`) at
+Defocus: a sharp render with a guard band of the window + 2 px (`Camera.padded`) at
 --sharp-spp, with --layers peeled layers; each --methods token (default: exact, the default
 method; sliced, sliced with 4 and 8 sub-apertures, pyramid, lens) on single-layer RGB-D with
 the hidden-background estimate (`hidden=True`) and on the peeled layers (`render(...,
@@ -81,6 +82,9 @@ CASES = {
 LENS_SAMPLES = 64
 SCALE_LAYERS = 3  # peeled layers of the render whose largest |c| sets a case's aperture
 COC_BANDS = (0, 1, 2, 3, 4, 6, 8, 12, 16, 24, math.inf)  # |c| bands (px) of the interior table
+# Every case is defocused with this window (px at 256 px wide, the largest max |c| of CASES) and
+# a guard band of window + 2 px, so all cases share one compiled program per method.
+WINDOW = 24
 
 
 def scene_path(name):
@@ -182,7 +186,9 @@ def variants(args, lens_case):
 def run_case(name, scene, base, case, args, bar):
     label, focus, max_coc, lens_case = case
     max_coc = max_coc * args.size / 256
-    cam, margin = case_camera(scene, base, args.size, focus, max_coc)
+    cam, _ = case_camera(scene, base, args.size, focus, max_coc)
+    window = WINDOW * args.size / 256
+    margin = math.ceil(window) + 2
     path = scene_path(name)
     halves = []
     spp = args.spp if lens_case else args.spp_other
@@ -208,7 +214,7 @@ def run_case(name, scene, base, case, args, bar):
     rows = []
     for vlabel, token, layered in variants(args, lens_case and not args.no_lens):
         bar.set_postfix_str(f"{name}, {label}: {vlabel}")
-        opts = dict(method_options(token), window=max_coc, margin=margin)
+        opts = dict(method_options(token), window=window, margin=margin)
         if opts["method"] == "lens":
             opts["samples"] = LENS_SAMPLES
         if layered:
@@ -303,7 +309,8 @@ def write_outputs(results, args, base, elapsed):
         "Command: `" + f"python benchmarks/defocus_regions.py {args.command}".strip() + "`\n",
         f"{args.size} px wide; reference `render_reference` at {args.spp} spp (two halves; "
         f"{args.spp_other} spp on the cases without a lens-method row); "
-        f"sharp input {args.sharp_spp} spp with a guard band of the largest |c| + 2 px; "
+        f"sharp input {args.sharp_spp} spp with a guard band of window + 2 px, window "
+        f"{WINDOW * args.size / 256:g} px (every case, every method); "
         f"{args.layers} peeled layers for the layered rows. Interior: farther than "
         "max(edge reach, own |c|) + 2 px from every depth edge; edges: the rest. RMSE-n: the "
         "region's reference noise removed in quadrature. Time: the defocus call, median after "
@@ -472,9 +479,7 @@ def main(argv=None):
     args.cases = args.cases or ("lens" if args.quick else "all")
     todo = [(s, case) for s in args.scenes for case in CASES[s]
             if args.cases == "all" or case[3]]
-    # cases with the same largest |c| share the window and guard band, hence compiled programs:
-    # run them one after another
-    todo.sort(key=lambda t: (t[1][2], t[0] == "mirror_tilted"))
+    todo.sort(key=lambda t: not t[1][3])  # the lens cases (4096 spp) first
     t0 = time.perf_counter()
     results = []
     scenes = {s: (dofjax.load_scene(scene_path(s)), dofjax.load_camera(scene_path(s)))

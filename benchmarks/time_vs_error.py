@@ -601,9 +601,11 @@ def main(argv=None) -> int:
             print(f"{name}: {setting['name']}", flush=True)
             if "max_coc" in setting:  # a defocus_regions.py case: its camera and halves
                 coc = setting["max_coc"] * args.size / 256
-                cam, setting["margin"] = defocus_regions.case_camera(
-                    scene, base, args.size, setting["focus"], coc)
-                setting["window"] = coc
+                cam, _ = defocus_regions.case_camera(scene, base, args.size, setting["focus"],
+                                                     coc)
+                # defocus_regions.py's window and guard band: the same compiled programs
+                setting["window"] = defocus_regions.WINDOW * args.size / 256
+                setting["margin"] = math.ceil(setting["window"]) + 2
                 halves = [cached_reference(scene, cam, path, args.truth_spp // 2, seed,
                                            args.cache)[0] for seed in (0, 1)]
                 truth = 0.5 * (halves[0] + halves[1])
