@@ -603,9 +603,9 @@ def main(argv=None) -> int:
                 coc = setting["max_coc"] * args.size / 256
                 cam, _ = defocus_regions.case_camera(scene, base, args.size, setting["focus"],
                                                      coc)
-                # defocus_regions.py's window and guard band: the same compiled programs
-                setting["window"] = defocus_regions.WINDOW * args.size / 256
-                setting["margin"] = math.ceil(setting["window"]) + 2
+                # the window a bare `defocus` call picks here (every setting's largest |c| is
+                # 12 px at 256 px, so the settings share compiled programs)
+                setting["window"], setting["margin"] = coc, math.ceil(coc) + 2
                 halves = [cached_reference(scene, cam, path, args.truth_spp // 2, seed,
                                            args.cache)[0] for seed in (0, 1)]
                 truth = 0.5 * (halves[0] + halves[1])
