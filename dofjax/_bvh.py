@@ -34,6 +34,8 @@ MIN_TRIANGLES = 64
 # Box padding relative to the mesh's largest coordinate, and relative slack of the box test's t.
 _PAD = 1e-5
 _SLACK_ULPS = 64
+# Triangles tested per traversal step (a leaf of LEAF_SIZE takes LEAF_SIZE / _SLOTS steps).
+_SLOTS = 1
 # Traversal steps between refills of the lanes whose rays are done.
 _STEPS = 4
 
@@ -336,7 +338,7 @@ def _walk(tri, o, d, tmin, tmax, skip_back, lanes):
         tmax_all = jnp.full((n_rays,), -jnp.inf, dtype)
     else:
         tmax_all = jax.lax.stop_gradient(jnp.broadcast_to(tmax, (n_rays,)).astype(dtype))
-    slots = jnp.arange(LEAF_SIZE, dtype=jnp.int32)
+    slots = jnp.arange(_SLOTS, dtype=jnp.int32)
     # a zero direction component becomes a tiny one of the same sign for the box test only: its
     # slab is then all or nothing, as the exact test's (the box test only culls, with slack)
     tiny = float(jnp.finfo(dtype).tiny) * 16.0
@@ -350,7 +352,7 @@ def _walk(tri, o, d, tmin, tmax, skip_back, lanes):
                   + 4 * (rd[:, 2] < 0).astype(jnp.int32))
         return ro, rd, inv, tmin[r], tmax_all[r], octant
 
-    def step(node, best_t, best_i, best_o, ray_o, ray_d, inv, ray_tmin, ray_tmax, octant):
+    def step(node, sub, best_t, best_i, best_o, ray_o, ray_d, inv, ray_tmin, ray_tmax, octant):
         active = node >= 0
         n = jnp.maximum(node, 0)
         box = tri.box[n]  # (L, 6)
@@ -365,16 +367,17 @@ def _walk(tri, o, d, tmin, tmax, skip_back, lanes):
         hit = active & (t_near <= t_far) & (t_far >= ray_tmin) & (t_near <= best_t)
         child, axis, first, count = links[:, 0], links[:, 1], links[:, 2], links[:, 3]
         leaf = child < 0
-        j = jnp.minimum(first[:, None] + slots, p - 1)  # (L, K)
-        rows = leaf_rows[j]  # (L, K, 9)
+        # a leaf's triangles, _SLOTS per step from `sub` on (the lane stays on the leaf until done)
+        j = jnp.minimum(first[:, None] + sub[:, None] + slots, p - 1)  # (L, S)
+        rows = leaf_rows[j]  # (L, S, 9)
         orig = tri.order[j]
-        test = (hit & leaf)[:, None] & (slots < count[:, None])
+        test = (hit & leaf)[:, None] & (sub[:, None] + slots < count[:, None])
         t, facing = triangle_rows(rows[..., 0:3], rows[..., 3:6], rows[..., 6:9],
                                   ray_o[:, None, :], ray_d[:, None, :], ray_tmin[:, None])
         ok = test & jnp.isfinite(t)
         if skip_back is not None:
             ok = ok & (facing | ~skip_back[j])
-        for k in range(LEAF_SIZE):
+        for k in range(_SLOTS):
             tk, ok_k, orig_k = t[:, k], ok[:, k], orig[:, k]
             better = ok_k & ((tk < best_t) | ((tk == best_t) & (orig_k < best_o)))
             best_t = jnp.where(better, tk, best_t)
@@ -382,20 +385,19 @@ def _walk(tri, o, d, tmin, tmax, skip_back, lanes):
             best_o = jnp.where(better, orig_k, best_o)
         down = child + ((octant >> axis) & 1)
         skip = jnp.take_along_axis(links[:, 4:], octant[:, None], axis=1)[:, 0]
-        nxt = jnp.where(hit & ~leaf, down, skip)
+        more = hit & leaf & (sub + _SLOTS < count)
+        nxt = jnp.where(more, node, jnp.where(hit & ~leaf, down, skip))
         nxt = jnp.where(best_t < ray_tmax, -1, nxt)
-        return jnp.where(active, nxt, -1), best_t, best_i, best_o
+        sub = jnp.where(more, sub + _SLOTS, 0)
+        return jnp.where(active, nxt, -1), sub, best_t, best_i, best_o
 
     def cond(state):
         return jnp.any(state[0] < n_rays)
 
     def body(state):
-        ray, node, best_t, best_i, best_o, ray_data, waiting, out_t, out_i = state
-        if _STEPS == 1:
-            node, best_t, best_i, best_o = step(node, best_t, best_i, best_o, *ray_data)
-        else:
-            node, best_t, best_i, best_o = jax.lax.fori_loop(
-                0, _STEPS, lambda _, c: step(*c, *ray_data), (node, best_t, best_i, best_o))
+        ray, node, sub, best_t, best_i, best_o, ray_data, waiting, out_t, out_i = state
+        node, sub, best_t, best_i, best_o = jax.lax.fori_loop(
+            0, _STEPS, lambda _, c: step(*c, *ray_data), (node, sub, best_t, best_i, best_o))
         done = (node < 0) & (ray < n_rays)
         # finished rays leave their result; idle lanes (ray == n_rays) write nothing
         target = jnp.where(done, ray, n_rays)
@@ -414,11 +416,12 @@ def _walk(tri, o, d, tmin, tmax, skip_back, lanes):
         best_i = jnp.where(fresh, 0, best_i)
         best_o = jnp.where(fresh, big, best_o)
         waiting = jnp.minimum(waiting + jnp.sum(free, dtype=jnp.int32), n_rays)
-        return new, node, best_t, best_i, best_o, ray_data, waiting, out_t, out_i
+        return new, node, sub, best_t, best_i, best_o, ray_data, waiting, out_t, out_i
 
     ray = jnp.arange(lanes, dtype=jnp.int32)
     state = (
-        ray, jnp.zeros((lanes,), jnp.int32), jnp.full((lanes,), jnp.inf, dtype),
+        ray, jnp.zeros((lanes,), jnp.int32), jnp.zeros((lanes,), jnp.int32),
+        jnp.full((lanes,), jnp.inf, dtype),
         jnp.zeros((lanes,), jnp.int32), jnp.full((lanes,), big, jnp.int32), load(ray),
         jnp.int32(lanes), jnp.full((n_rays,), jnp.inf, dtype), jnp.zeros((n_rays,), jnp.int32),
     )
