@@ -17,6 +17,7 @@ from __future__ import annotations
 import collections
 import hashlib
 import os
+import weakref
 
 import equinox as eqx
 import jax
@@ -204,6 +205,7 @@ def _area(lo, hi):
 
 _CACHE: collections.OrderedDict = collections.OrderedDict()
 _CACHE_SIZE = 4
+_BY_ID: dict = {}  # ids of a mesh's (immutable) jax arrays -> (weak references, content key)
 
 
 def _concrete(*xs) -> bool:
@@ -228,13 +230,24 @@ def index_triangles(triangles, closed=None):
             f"more than the {have / 2**30:.2f} GiB of memory available; split the mesh or "
             f"simplify it"
         )
-    v0, v1, v2 = (np.asarray(x) for x in (triangles.v0, triangles.v1, triangles.v2))
+    arrays = (triangles.v0, triangles.v1, triangles.v2, triangles.material)
+    # jax arrays are immutable: the same objects are the same mesh (no need to hash it again)
+    same = tuple(id(x) for x in arrays)
+    known = _BY_ID.get(same)
+    key = known[1] if known is not None and all(
+        r() is x for r, x in zip(known[0], arrays, strict=True)) else None
+    v0, v1, v2 = (np.asarray(x) for x in arrays[:3])
     mat = np.asarray(triangles.material)
-    h = hashlib.blake2b(digest_size=16)
-    for x in (v0, v1, v2, mat):
-        h.update(str((x.dtype, x.shape)).encode())
-        h.update(np.ascontiguousarray(x).data)
-    key = h.digest()
+    if key is None:
+        h = hashlib.blake2b(digest_size=16)
+        for x in (v0, v1, v2, mat):
+            h.update(str((x.dtype, x.shape)).encode())
+            h.update(np.ascontiguousarray(x).data)
+        key = h.digest()
+        if all(isinstance(x, jax.Array) for x in arrays):
+            _BY_ID[same] = (tuple(weakref.ref(x) for x in arrays), key)
+            while len(_BY_ID) > 4 * _CACHE_SIZE:
+                _BY_ID.pop(next(iter(_BY_ID)))
     if key in _CACHE:
         _CACHE.move_to_end(key)
         tree = _CACHE[key]

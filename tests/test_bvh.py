@@ -36,6 +36,8 @@ def _rays(n, seed, dtype):
     d[-n // 8:] *= -1  # some rays look away from everything
     o[-n // 16:] = rng.uniform([-2, -2, 3], [2, 2, 7], (n // 16, 3))  # some start inside the boxes
     tmin = np.where(np.arange(n) % 3 == 0, 2.0, 1e-6)  # some skip the nearest surfaces
+    d[n // 2] = np.nan  # bad rays end the walk as misses (no hang)
+    o[n // 2 + 1, 1] = np.inf
     return o.astype(dtype), d.astype(dtype), tmin.astype(dtype)
 
 
