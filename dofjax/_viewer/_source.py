@@ -150,20 +150,25 @@ def _is_record(path: str) -> bool:
     return isinstance(data, dict) and "files" in data and "truth" in data
 
 
+def check_input(path: str) -> None:
+    """Fail early (before any work) on a path that is missing, unreadable or of no known kind."""
+    _check_file(path)
+    if not (os.path.isdir(path) or path.lower().endswith((".jsonl", ".exr", ".json"))):
+        raise ValueError(f"{path}: expected a scene file (.json), a sharp RGB-D EXR (.exr) or "
+                         "a data_gen data set (directory, manifest.jsonl or sample record .json)")
+
+
 def load_source(path: str, *, width=None, height=None, layers=None, spp=1,
                 sample=None) -> Source:
     """Load whatever `path` names (see the module docstring)."""
-    _check_file(path)
+    check_input(path)
     if os.path.isdir(path) or path.endswith(".jsonl"):
         return load_sample_source(path, sample)
     if path.lower().endswith(".exr"):
         return load_exr_source(path)
-    if path.lower().endswith(".json"):
-        if _is_record(path):
-            return load_sample_source(path)
-        return load_scene_source(path, width=width, height=height, layers=layers, spp=spp)
-    raise ValueError(f"{path}: expected a scene file (.json), a sharp RGB-D EXR (.exr) or a "
-                     "data_gen data set (directory, manifest.jsonl or sample record .json)")
+    if _is_record(path):
+        return load_sample_source(path)
+    return load_scene_source(path, width=width, height=height, layers=layers, spp=spp)
 
 
 def check_target(source: Source, target: np.ndarray, name: str) -> np.ndarray:
