@@ -1,15 +1,18 @@
 """A bounding volume hierarchy over triangle meshes: built on the host, traversed in JAX.
 
-`build` makes a binary BVH by binned SAH (Wald 2007, "On fast construction of SAH-based bounding
-volume hierarchies") in numpy, one tree level at a time. `nearest_triangle` walks it for a batch of
-rays inside one `lax.while_loop` without a stack: every node stores, per ray octant, where to go
-when its box is missed or its subtree is done (a "threaded" tree, Smits 1998), and internal nodes
-send a ray to the child nearer along the split axis first, so the tree's size is data, not code.
+`build` makes a binary BVH in numpy, one tree level at a time: binned SAH (Wald 2007, "On fast
+construction of SAH-based bounding volume hierarchies") for nodes of more than 32 triangles, the
+middle of the widest axis below, leaves of 4. `nearest_triangle` walks it inside a
+`lax.while_loop` without a stack: every node stores, per ray octant, where to go when its box is
+missed or its subtree is done (a "threaded" tree, Smits 1998), and a ray enters the child nearer
+along the split axis first, so the tree's size is data, not code (compile time does not grow
+with the mesh).
 
-Every candidate triangle is tested with `_intersect.triangle_t`'s own arithmetic, and ties in t go
-to the lower triangle index as `argmin` does, so the BVH returns the hits of the all-pairs test.
-Node boxes are padded and the box test has a relative slack, so rounding never culls a triangle
-the all-pairs test would hit.
+Every candidate triangle is tested with `_intersect.triangle_t`'s arithmetic and ties in t go to
+the lower triangle index as `argmin` does, so the walk finds the all-pairs test's hits (t equal
+to float rounding: XLA:CPU contracts a * b + c into FMAs where its code generator chooses, which
+can differ between two programs). Node boxes are padded and the box test has a relative slack,
+so rounding never culls a triangle the all-pairs test would hit.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from ._intersect import triangle_rows
 # Triangles per leaf (static): the traversal tests this many triangle slots at every leaf.
 LEAF_SIZE = 4
 _BINS = 16
+_SAH_MIN = 32  # nodes with more primitives than this get a binned-SAH split
 # A scene needs at least this many triangles for the BVH to pay off (below, all pairs are cheaper).
 MIN_TRIANGLES = 64
 # Box padding relative to the mesh's largest coordinate, and relative slack of the box test's t.
@@ -114,35 +118,14 @@ def build(lo: np.ndarray, hi: np.ndarray, leaf_size: int = LEAF_SIZE, bins: int 
         best_cost = np.full(a, np.inf)
         best_axis = np.zeros(a, dtype=np.int64)
         best_bin = np.zeros(a, dtype=np.int64)
-        for ax in range(3):
-            key = seg * bins + b[:, ax]
-            cnt = np.bincount(key, minlength=a * bins)
-            # per-bin bounds: sort by bin, reduce each run (ufunc.at is ~10x slower)
-            by_bin = np.argsort(key, kind="stable")
-            used = np.flatnonzero(cnt)
-            first = np.concatenate([[0], np.cumsum(cnt[used])[:-1]])
-            blo = np.full((a * bins, 3), np.inf)
-            bhi = np.full((a * bins, 3), -np.inf)
-            blo[used] = np.minimum.reduceat(tl[by_bin], first, axis=0)
-            bhi[used] = np.maximum.reduceat(th[by_bin], first, axis=0)
-            cnt = cnt.reshape(a, bins)
-            blo, bhi = blo.reshape(a, bins, 3), bhi.reshape(a, bins, 3)
-            l_lo = np.minimum.accumulate(blo, axis=1)
-            l_hi = np.maximum.accumulate(bhi, axis=1)
-            r_lo = np.minimum.accumulate(blo[:, ::-1], axis=1)[:, ::-1]
-            r_hi = np.maximum.accumulate(bhi[:, ::-1], axis=1)[:, ::-1]
-            l_n = np.cumsum(cnt, axis=1)
-            r_n = np.cumsum(cnt[:, ::-1], axis=1)[:, ::-1]
-            # split after bin s: left = bins [0, s], right = [s + 1, bins)
-            cost = (_area(l_lo[:, :-1], l_hi[:, :-1]) * l_n[:, :-1]
-                    + _area(r_lo[:, 1:], r_hi[:, 1:]) * r_n[:, 1:])
-            cost = np.where((l_n[:, :-1] > 0) & (r_n[:, 1:] > 0), cost, np.inf)
-            s = np.argmin(cost, axis=1)
-            c = cost[np.arange(a), s]
-            better = c < best_cost
-            best_cost = np.where(better, c, best_cost)
-            best_axis = np.where(better, ax, best_axis)
-            best_bin = np.where(better, s, best_bin)
+        # binned SAH for the large nodes; small ones split in the middle of the widest axis
+        sah = np.flatnonzero(a_count > _SAH_MIN)
+        if sah.size:
+            remap = np.full(a, -1)
+            remap[sah] = np.arange(sah.size)
+            el = remap[seg] >= 0
+            cost, axis_s, bin_s = _sah(remap[seg[el]], b[el], tl[el], th[el], sah.size, bins)
+            best_cost[sah], best_axis[sah], best_bin[sah] = cost, axis_s, bin_s
         # no bin boundary separates the centroids: split along the widest axis
         best_axis = np.where(np.isfinite(best_cost), best_axis, np.argmax(ext, axis=1))
         # The left child gets the SAH split's count rounded to whole leaves, taken in order along
@@ -179,6 +162,44 @@ def build(lo: np.ndarray, hi: np.ndarray, leaf_size: int = LEAF_SIZE, bins: int 
             skip[far, octant] = skip[parents, octant]
     return dict(order=perm, lo=n_lo[:m], hi=n_hi[:m], child=child, axis=axis, start=start,
                 count=count, skip=skip)
+
+
+def _sah(seg, b, tl, th, a, bins):
+    """Best SAH split per node over `bins` centroid bins and the three axes: (cost, axis, bin)
+    per node (cost +inf where no boundary separates the centroids)."""
+    best_cost = np.full(a, np.inf)
+    best_axis = np.zeros(a, dtype=np.int64)
+    best_bin = np.zeros(a, dtype=np.int64)
+    for ax in range(3):
+        key = seg * bins + b[:, ax]
+        cnt = np.bincount(key, minlength=a * bins)
+        # per-bin bounds: sort by bin, reduce each run (ufunc.at is ~10x slower)
+        by_bin = np.argsort(key, kind="stable")
+        used = np.flatnonzero(cnt)
+        first = np.concatenate([[0], np.cumsum(cnt[used])[:-1]])
+        blo = np.full((a * bins, 3), np.inf)
+        bhi = np.full((a * bins, 3), -np.inf)
+        blo[used] = np.minimum.reduceat(tl[by_bin], first, axis=0)
+        bhi[used] = np.maximum.reduceat(th[by_bin], first, axis=0)
+        cnt = cnt.reshape(a, bins)
+        blo, bhi = blo.reshape(a, bins, 3), bhi.reshape(a, bins, 3)
+        l_lo = np.minimum.accumulate(blo, axis=1)
+        l_hi = np.maximum.accumulate(bhi, axis=1)
+        r_lo = np.minimum.accumulate(blo[:, ::-1], axis=1)[:, ::-1]
+        r_hi = np.maximum.accumulate(bhi[:, ::-1], axis=1)[:, ::-1]
+        l_n = np.cumsum(cnt, axis=1)
+        r_n = np.cumsum(cnt[:, ::-1], axis=1)[:, ::-1]
+        # split after bin s: left = bins [0, s], right = [s + 1, bins)
+        cost = (_area(l_lo[:, :-1], l_hi[:, :-1]) * l_n[:, :-1]
+                + _area(r_lo[:, 1:], r_hi[:, 1:]) * r_n[:, 1:])
+        cost = np.where((l_n[:, :-1] > 0) & (r_n[:, 1:] > 0), cost, np.inf)
+        s = np.argmin(cost, axis=1)
+        c = cost[np.arange(a), s]
+        better = c < best_cost
+        best_cost = np.where(better, c, best_cost)
+        best_axis = np.where(better, ax, best_axis)
+        best_bin = np.where(better, s, best_bin)
+    return best_cost, best_axis, best_bin
 
 
 def n_sah_left(b, seg, best_axis, best_bin, a):
@@ -310,7 +331,8 @@ def memory_bytes(tri: IndexedTriangles) -> int:
 
 
 def nearest_triangle(
-    tri: IndexedTriangles, o, d, tmin, *, tmax=None, skip_back=None, lanes: int = 4096
+    tri: IndexedTriangles, o, d, tmin, *, tmax=None, skip_back=None, t_init=None,
+    lanes: int = 4096,
 ) -> tuple[Float[Array, " n"], Int[Array, " n"]]:
     """Nearest triangle hit beyond `tmin` of rays `o + t d` ((N, 3), (N, 3), (N,)).
 
@@ -318,8 +340,10 @@ def nearest_triangle(
     in `tri` (leaf order; 0 on a miss), the lowest original index among equal t. With `tmax` (N,),
     a ray stops at its first hit before tmax (shadow rays: then t is some hit < tmax, not
     necessarily the nearest). `skip_back` (P,) bool, in leaf order: those triangles count only
-    where the ray meets their front (winding normal against d). Not differentiable (integer
-    result; callers recompute t from the index).
+    where the ray meets their front (winding normal against d). `t_init` (N,): a hit already
+    found (another primitive type's): t is at most it, and only triangles at least as near are
+    looked for (the index is then a placeholder unless a triangle's t <= t_init). Not
+    differentiable (integer result; callers recompute t from the index).
 
     `lanes` rays are in flight at once; a lane whose ray is done takes the next waiting ray, so
     every step of the loop works on `lanes` unfinished rays until the last ones. With at least
@@ -328,17 +352,17 @@ def nearest_triangle(
     """
     n_rays = o.shape[0]
     if n_rays < 2 * lanes:
-        return _walk(tri, o, d, tmin, tmax, skip_back, lanes)
+        return _walk(tri, o, d, tmin, tmax, skip_back, t_init, lanes)
     half = -(-n_rays // 2)
     cut = lambda x, i: None if x is None else x[i * half: (i + 1) * half]  # noqa: E731
     if tmax is not None:
         tmax = jnp.broadcast_to(tmax, (n_rays,))
-    parts = [_walk(tri, cut(o, i), cut(d, i), cut(tmin, i), cut(tmax, i), skip_back, lanes)
-             for i in range(2)]
+    parts = [_walk(tri, cut(o, i), cut(d, i), cut(tmin, i), cut(tmax, i), skip_back,
+                   cut(t_init, i), lanes) for i in range(2)]
     return tuple(jnp.concatenate(x) for x in zip(*parts, strict=True))
 
 
-def _walk(tri, o, d, tmin, tmax, skip_back, lanes):
+def _walk(tri, o, d, tmin, tmax, skip_back, t_init, lanes):
     o, d, tmin = (jax.lax.stop_gradient(x) for x in (o, d, tmin))
     leaf_rows = jax.lax.stop_gradient(tri.leaf)
     n_rays = o.shape[0]
@@ -351,6 +375,10 @@ def _walk(tri, o, d, tmin, tmax, skip_back, lanes):
         tmax_all = jnp.full((n_rays,), -jnp.inf, dtype)
     else:
         tmax_all = jax.lax.stop_gradient(jnp.broadcast_to(tmax, (n_rays,)).astype(dtype))
+    if t_init is None:
+        t_init = jnp.full((n_rays,), jnp.inf, dtype)
+    else:
+        t_init = jax.lax.stop_gradient(t_init).astype(dtype)
     slots = jnp.arange(_SLOTS, dtype=jnp.int32)
     # a zero direction component becomes a tiny one of the same sign for the box test only: its
     # slab is then all or nothing, as the exact test's (the box test only culls, with slack)
@@ -425,7 +453,7 @@ def _walk(tri, o, d, tmin, tmax, skip_back, lanes):
         ray_data = tuple(jnp.where(fresh.reshape((-1,) + (1,) * (x.ndim - 1)), y, x)
                          for x, y in zip(ray_data, loaded, strict=True))
         node = jnp.where(fresh, 0, jnp.where(free, -1, node))
-        best_t = jnp.where(fresh, jnp.inf, best_t)
+        best_t = jnp.where(fresh, t_init[jnp.minimum(new, n_rays - 1)], best_t)
         best_i = jnp.where(fresh, 0, best_i)
         best_o = jnp.where(fresh, big, best_o)
         waiting = jnp.minimum(waiting + jnp.sum(free, dtype=jnp.int32), n_rays)
@@ -434,7 +462,7 @@ def _walk(tri, o, d, tmin, tmax, skip_back, lanes):
     ray = jnp.arange(lanes, dtype=jnp.int32)
     state = (
         ray, jnp.zeros((lanes,), jnp.int32), jnp.zeros((lanes,), jnp.int32),
-        jnp.full((lanes,), jnp.inf, dtype),
+        t_init[ray],
         jnp.zeros((lanes,), jnp.int32), jnp.full((lanes,), big, jnp.int32), load(ray),
         jnp.int32(lanes), jnp.full((n_rays,), jnp.inf, dtype), jnp.zeros((n_rays,), jnp.int32),
     )

@@ -334,12 +334,13 @@ def _indexed(prims) -> bool:
     return hasattr(prims, "links")
 
 
-def nearest_triangle(tr, o, d, tmin):
-    """Nearest triangle (t (N,), index (N,)) through the BVH. The value of t is the traversal's;
-    its derivative in the rays is that of t recomputed from the index (the loop has none)."""
+def nearest_triangle(tr, o, d, tmin, t_init=None):
+    """Nearest triangle (t (N,), index (N,)) through the BVH (`t_init`: see `_bvh`). The value of
+    t is the traversal's; its derivative in the rays is that of t recomputed from the index (the
+    loop has none)."""
     from ._bvh import nearest_triangle as traverse
 
-    t_bvh, idx = traverse(tr, o, d, tmin)
+    t_bvh, idx = traverse(tr, o, d, tmin, t_init=t_init)
     v0 = tr.v0[idx]
     t, _ = triangle_rows(v0, tr.v1[idx] - v0, tr.v2[idx] - v0, o, d, tmin)
     ok = jnp.isfinite(t_bvh) & jnp.isfinite(t)
@@ -369,7 +370,8 @@ def nearest(scene, o, d, tmin) -> tuple[Float[Array, " n"], Int[Array, " n"], Hi
         if prims is None or prims.material.shape[0] == 0:
             continue
         if _indexed(prims):
-            t, idx = nearest_triangle(prims, o, d, tmin)
+            # the nearer types' hits cull the walk (triangles come last: a tie is not closer)
+            t, idx = nearest_triangle(prims, o, d, tmin, best_t)
         else:
             ts = t_fn(prims, o, d, tmin)
             idx = jnp.argmin(ts, axis=-1)
@@ -399,7 +401,7 @@ def nearest_t(scene, o, d, tmin, tmax=None) -> Float[Array, " n"]:
         if _indexed(prims):
             from ._bvh import nearest_triangle as traverse
 
-            t = traverse(prims, o, d, tmin, tmax=tmax)[0]
+            t = traverse(prims, o, d, tmin, tmax=tmax, t_init=best_t)[0]
         else:
             t = jnp.min(t_fn(prims, o, d, tmin), axis=-1)
         best_t = jnp.minimum(best_t, t)

@@ -382,7 +382,7 @@ def _front_t(scene: Scene, o, d, tmin, closed):
             t_far = jnp.minimum(jnp.minimum(slabs[0][1], slabs[1][1]), slabs[2][1])
             t = jnp.where((t_near <= t_far) & (t_near > tm), t_near, jnp.inf)
         elif name == "triangles" and _indexed(prims):
-            t = nearest_triangle(prims, o, d, tmin, skip_back=closed)[0]
+            t = nearest_triangle(prims, o, d, tmin, skip_back=closed, t_init=best)[0]
             best = jnp.minimum(best, t)
             continue
         elif name == "triangles":
