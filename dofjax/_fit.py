@@ -1924,12 +1924,10 @@ def fit_focus(
             hidden-background estimate), so a target made with a bare `dofjax.defocus(...)` is
             the model a bare fit fits; pass the same options to both. The exact model
             polishes only: the multi-start, scan and screen run with "sliced". For photographs
-            (or lens-sampled targets) of an RGBD with peeled layers, {"method": "lens"} is the model closest to a real lens (relative mismatch
-            at the true camera 0.022 vs the sliced model's 0.035, median of the
-            lens-reference cases in benchmarks/README.md); it polishes only: the multi-start,
-            scan and screen run with "sliced" (same shape options), and the lens model takes
-            the pair they pick to its own minimum. {"method": "lens", "samples": 64} polishes
-            ~3.5x faster. {"subapertures": 4} likewise polishes with the sliced model's
+            (or lens-sampled targets) of an RGBD with peeled layers, {"method": "lens"} decides
+            occlusion per lens ray, closest to a real lens behind blurred edges; it polishes
+            only, like "exact", and {"method": "lens", "samples": 64} polishes ~3.5x faster.
+            {"method": "sliced", "subapertures": 4} polishes with the sliced model's
             sub-apertures (closer to a lens behind blurred edges) after a plain sliced search.
         model: a forward model `model(rgb, depth, camera) -> (H, W, 3)`, pure and jittable, used
             instead of dofjax's defocus at every level (window/defocus_options are then ignored).

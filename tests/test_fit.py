@@ -313,16 +313,14 @@ def test_batch_matches_single_fits():
 
 @pytest.mark.slow
 def test_real_defocus_recovery():
-    """End to end with dofjax's defocus: a target from a bare `dofjax.defocus` call is the fit's
-    default model (both "sliced"; while `defocus` defaulted to "pyramid" such a target was a
-    model mismatch, d off by 9 % here). It used to be opt-in (~7 min of compiling); 43 s since
-    session 12's compile-time work."""
+    """End to end with dofjax's defocus: a target from a bare `dofjax.defocus` call is the model
+    a bare fit polishes with (both "exact"), so the fit recovers the camera exactly."""
     rgb, depth = scene()
     cam = CAM.replace(aperture_radius=0.1)
     true = cam.replace(focus_distance=1.7, aperture_radius=0.15)
     target = dofjax.defocus(rgb, depth, true, window=4.0)
     np.testing.assert_array_equal(target, dofjax.defocus(rgb, depth, true, window=4.0,
-                                                         method="sliced"))
+                                                         method="exact"))
     res = fit_focus(target, rgb, depth, cam, starts=2, window=4.0, solver="gauss_newton",
                     bounds={"focus_distance": (0.8, 20.0), "aperture_radius": (0.01, 0.3)})
     assert abs(float(res.focus_distance) / 1.7 - 1) < 1e-4
@@ -330,17 +328,17 @@ def test_real_defocus_recovery():
 
 
 def test_subaperture_polish_recovers_its_own_target():
-    """defocus_options={"subapertures": 4}: the search runs the plain sliced model, the polish
-    the sub-aperture one, which made the target (so it ends at the truth, where the plain
-    model leaves a residual)."""
+    """defocus_options={"method": "sliced", "subapertures": 4}: the search runs the plain
+    sliced model, the polish the sub-aperture one, which made the target (so it ends at the
+    truth, where the plain model leaves a residual)."""
     rgb, depth = scene()
     cam = CAM.replace(aperture_radius=0.1)
     true = cam.replace(focus_distance=1.7, aperture_radius=0.15)
-    target = dofjax.defocus(rgb, depth, true, window=4.0, subapertures=4)
-    plain = dofjax.defocus(rgb, depth, true, window=4.0)
+    target = dofjax.defocus(rgb, depth, true, window=4.0, method="sliced", subapertures=4)
+    plain = dofjax.defocus(rgb, depth, true, window=4.0, method="sliced")
     assert float(jnp.mean((plain - target) ** 2)) > 1e-6
     res = fit_focus(target, rgb, depth, cam, starts=2, window=4.0,
-                    defocus_options={"subapertures": 4},
+                    defocus_options={"method": "sliced", "subapertures": 4},
                     bounds={"focus_distance": (0.8, 20.0), "aperture_radius": (0.01, 0.3)})
     assert abs(float(res.focus_distance) / 1.7 - 1) < 1e-4
     assert abs(float(res.aperture_radius) / 0.15 - 1) < 1e-4
@@ -354,9 +352,9 @@ def test_batch_with_subapertures_recovers_each_target():
     truths = [(1.7, 0.15), (2.3, 0.12)]
     targets = np.stack([np.asarray(dofjax.defocus(
         rgb, depth, cam.replace(focus_distance=d, aperture_radius=a), window=4.0,
-        subapertures=4)) for d, a in truths])
+        method="sliced", subapertures=4)) for d, a in truths])
     res = fit_focus_batch(targets, rgb, depth, cam, starts=2, window=4.0,
-                          defocus_options={"subapertures": 4},
+                          defocus_options={"method": "sliced", "subapertures": 4},
                           bounds={"focus_distance": (0.8, 20.0), "aperture_radius": (0.01, 0.3)})
     np.testing.assert_allclose(np.asarray(res.focus_distance), [d for d, _ in truths], rtol=1e-4)
     np.testing.assert_allclose(np.asarray(res.aperture_radius), [a for _, a in truths],

@@ -649,12 +649,14 @@ def test_subapertures_of_one_plane_add_up_to_the_whole_aperture(c):
     depth = np.full((n, n), depth_for_coc(c, cam))
     min_radius = sliced_mod.CELL_RADIUS_FACTOR * sliced_mod.MIN_LOW_RADIUS
     whole = np.asarray(sliced_defocus(rgb, depth, cam, window=8, min_radius=min_radius))
-    parts = np.asarray(dofjax.defocus(rgb, depth, cam, window=8, subapertures=4))
+    parts = np.asarray(dofjax.defocus(rgb, depth, cam, window=8, method="sliced",
+                                      subapertures=4))
     m = 14
     np.testing.assert_allclose(parts[m:-m, m:-m], whole[m:-m, m:-m], atol=1e-10)
     if abs(c) < 4:  # (8 sectors: the taps on their diagonal boundaries are shared half and
         # half, so the eighths are equal in mass and add up exactly; at full resolution)
-        eighths = np.asarray(dofjax.defocus(rgb, depth, cam, window=8, subapertures=8))
+        eighths = np.asarray(dofjax.defocus(rgb, depth, cam, window=8, method="sliced",
+                                            subapertures=8))
         np.testing.assert_allclose(eighths[m:-m, m:-m], whole[m:-m, m:-m], atol=1e-10)
     # the whole aperture's own pass blurs |c| 4 ... 6 at half resolution: close, not equal
     plain = np.asarray(dofjax.defocus(rgb, depth, cam, window=8))
@@ -666,7 +668,7 @@ def test_subapertures_of_one_plane_add_up_to_the_whole_aperture(c):
     spot = np.zeros((n, n, 3))
     spot[n // 2, n // 2] = 1.0
     out = np.asarray(dofjax.defocus(spot, depth, cam, window=8, shape="polygon", blades=5,
-                                    rotation=0.3, subapertures=3))
+                                    rotation=0.3, method="sliced", subapertures=3))
     np.testing.assert_allclose(out.sum(axis=(0, 1)), 1.0, rtol=1e-10)
 
 
@@ -716,7 +718,7 @@ def test_subapertures_bring_a_blurred_edge_closer_to_per_ray_occlusion():
     err = {}
     for k in (1, 4):
         out = np.asarray(dofjax.defocus(rgb, depth, cam, layers=layers, window=8,
-                                        subapertures=k))
+                                        method="sliced", subapertures=k))
         err[k] = np.sqrt(np.mean((out - lens)[8:-8, 8:-8] ** 2))
     assert err[4] < 0.8 * err[1], err  # measured 0.0046 -> 0.0027
 
@@ -782,9 +784,9 @@ def test_sectors_in_one_pass_with_a_mirror():
                              cell=(k, k_sectors))
         virtual = sliced_defocus(m.radiance, m.depth, cam, window=6, cell=(k, k_sectors))
         want = want + w * (out[..., :3] + out[..., 3:] * virtual)
-    got = dofjax.defocus(sharp, cam, window=6, subapertures=k_sectors)
+    got = dofjax.defocus(sharp, cam, window=6, method="sliced", subapertures=k_sectors)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-13)
-    f = dofjax.defocus_fn(sharp, cam, window=6, subapertures=k_sectors)
+    f = dofjax.defocus_fn(sharp, cam, window=6, method="sliced", subapertures=k_sectors)
     assert_grads_match_fd(lambda p: jnp.sum(f(p[0], p[1]) ** 2),
                           jnp.array([float(cam.focus_distance), float(cam.aperture_radius)]))
 
@@ -795,7 +797,7 @@ def test_subaperture_gradients_match_central_differences():
     rgb = rng.random((N, N, 3))
     depth = np.where(np.arange(N)[None, :] < N // 2, 1.3, 4.0) * np.ones((N, N))
     w = jnp.asarray(rng.random((N, N, 3)))
-    f = dofjax.defocus_fn(rgb, depth, cam, window=8, subapertures=4)
+    f = dofjax.defocus_fn(rgb, depth, cam, window=8, method="sliced", subapertures=4)
 
     def loss(p):
         return jnp.sum(w * f(p[0], p[1]))
@@ -814,6 +816,7 @@ def test_subaperture_gradients_match_central_differences():
     (True, "sliced", "subapertures must be an int"),
     (4, "pyramid", "subapertures is for method='sliced' only"),
     (4, "lens", "subapertures is for method='sliced' only"),
+    (4, "exact", "subapertures is for method='sliced' only"),
 ])
 def test_subapertures_are_checked(value, method, match):
     cam = camera()
