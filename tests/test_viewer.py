@@ -173,8 +173,13 @@ def test_stale_frames_are_dropped_not_queued():
         gate.leave()  # the lock goes to the waiters in order of arrival: the other page first
         assert await asyncio.wait_for(other_page, 1) is True
         assert not third.done()
+        gone = asyncio.ensure_future(gate.enter("closed tab", 1))
+        await asyncio.sleep(0.01)
+        gone.cancel()  # a request that went away while waiting does not keep the lock
         gate.leave()
         assert await asyncio.wait_for(third, 1) is True
+        gate.leave()
+        assert await asyncio.wait_for(gate.enter("later", 1), 1) is True
         gate.leave()
 
     asyncio.run(scenario())

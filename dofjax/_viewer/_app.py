@@ -92,12 +92,13 @@ class FrameGate:
         superseded = self._loop.create_future()
         self._waiting[client] = superseded
         acquire = asyncio.ensure_future(self._lock.acquire())
-        await asyncio.wait({acquire, superseded}, return_when=asyncio.FIRST_COMPLETED)
+        try:
+            await asyncio.wait({acquire, superseded}, return_when=asyncio.FIRST_COMPLETED)
+        except asyncio.CancelledError:  # the request went away: never keep the lock
+            self._drop(acquire)
+            raise
         if superseded.done():
-            if acquire.done() and not acquire.cancelled():
-                self._lock.release()
-            else:
-                acquire.cancel()
+            self._drop(acquire)
             return False
         if self._waiting.get(client) is superseded:
             del self._waiting[client]
@@ -105,6 +106,12 @@ class FrameGate:
 
     def leave(self) -> None:
         self._lock.release()
+
+    def _drop(self, acquire) -> None:
+        if acquire.done() and not acquire.cancelled():
+            self._lock.release()
+        else:
+            acquire.cancel()
 
 
 def create_app(engine: Engine, *, max_upload: int = MAX_UPLOAD) -> Starlette:
