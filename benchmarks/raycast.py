@@ -5,6 +5,10 @@ extra time over the median is reported as compile time. Every timed result is `b
 
     python benchmarks/raycast.py            # full table, 512x512 (minutes on 2 cores)
     python benchmarks/raycast.py --size 128 --counts 1 10   # quick look
+    python benchmarks/raycast.py --no-bvh     # every triangle against every ray (see below)
+
+Triangle sets of at least `dofjax._bvh.MIN_TRIANGLES` go through a BVH unless `--no-bvh`;
+benchmarks/raycast_scale.py times meshes of 1k to 1M triangles.
 
 Writes the table to benchmarks/results/raycast.md (or --out).
 """
@@ -128,6 +132,8 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--float64", action="store_true", help="run in float64 (default float32)")
+    ap.add_argument("--no-bvh", action="store_true",
+                    help="test every triangle against every ray (no BVH)")
     here = os.path.dirname(__file__)
     ap.add_argument("--out", default=os.path.join(here, "results", "raycast.md"))
     args = ap.parse_args(argv)
@@ -135,6 +141,10 @@ def main(argv=None) -> int:
         ap.error("--repeats must be >= 5 (the table reports medians of at least 5 runs)")
     if args.float64:
         jax.config.update("jax_enable_x64", True)
+    if args.no_bvh:
+        from dofjax import _bvh
+
+        _bvh.MIN_TRIANGLES = 1 << 62
     size = args.size
     camera = dofjax.Camera(size, size, fov=60.0, focus_distance=8.0, aperture_radius=0.0)
     rays = size * size
@@ -170,7 +180,8 @@ def main(argv=None) -> int:
         "# Ray caster speed",
         "",
         f"`python benchmarks/raycast.py --size {size}` on {platform.machine()} with "
-        f"{os.cpu_count()} CPU cores (shared), jax {jax.__version__}, {dtype}, spp = 1. "
+        f"{os.cpu_count()} CPU cores (shared), jax {jax.__version__}, {dtype}, spp = 1"
+        f"{', no BVH' if args.no_bvh else ''}. "
         f"Median of {args.repeats} runs after a warm-up; compile = warm-up time minus the median. "
         f"1-minute load average at the end: {load:.1f} (above the core count, timings are "
         "inflated).",
