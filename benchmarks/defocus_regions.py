@@ -356,7 +356,8 @@ def write_outputs(results, args, base, elapsed):
 
     saved = {k: v for k, v in vars(args).items() if k not in ("cache", "out", "jax_cache")}
     with open(base + ".json", "w") as fh:
-        json.dump(dict(args=saved, summary=summ, results=results), fh, indent=1)
+        json.dump(dict(args=saved, summary=summ, results=results, elapsed=elapsed), fh,
+                  indent=1)
     plot(results, summ, base + ".png")
     return summ
 
@@ -437,6 +438,8 @@ def main(argv=None):
                     help="all cases, or only those marked for the lens method (one per scene; "
                          "default all, --quick: lens)")
     ap.add_argument("--no-lens", action="store_true", help="skip the lens method's rows")
+    ap.add_argument("--resume", action="store_true",
+                    help="keep the cases of the output's .json (same settings) and run the rest")
     ap.add_argument("--runs", type=int, default=None, help="timed runs after warm-up (5)")
     ap.add_argument("--cache", default=os.path.join(HERE, "results", "cache"))
     ap.add_argument("--jax-cache", metavar="DIR", default=None,
@@ -447,7 +450,8 @@ def main(argv=None):
     ap.add_argument("--out", default=None, help="output path without extension (default "
                     "benchmarks/results/defocus_regions; --quick: under --cache)")
     args = ap.parse_args(argv)
-    args.command = shown_command(sys.argv[1:] if argv is None else argv)
+    args.command = shown_command([a for a in (sys.argv[1:] if argv is None else argv)
+                                  if a != "--resume"])
     args.size = args.size or (64 if args.quick else 256)
     args.spp = args.spp or (256 if args.quick else 4096)
     args.spp_other = args.spp_other or (256 if args.quick else 1024)
@@ -479,9 +483,23 @@ def main(argv=None):
     args.cases = args.cases or ("lens" if args.quick else "all")
     todo = [(s, case) for s in args.scenes for case in CASES[s]
             if args.cases == "all" or case[3]]
-    todo.sort(key=lambda t: not t[1][3])  # the lens cases (4096 spp) first
+    # the lens cases (4096 spp) first; the mirror scene (its own compiled programs) last
+    todo.sort(key=lambda t: (t[0] == "mirror_tilted", not t[1][3]))
     t0 = time.perf_counter()
     results = []
+    if args.resume and os.path.exists(base + ".json"):
+        import json
+
+        with open(base + ".json") as fh:
+            saved = json.load(fh)
+        same = all(saved["args"].get(k) == getattr(args, k) for k in (
+            "size", "spp", "spp_other", "sharp_spp", "layers", "methods", "no_lens"))
+        if not same:
+            ap.error(f"--resume: {base}.json was made with other settings")
+        results = saved["results"]
+        t0 -= saved.get("elapsed", 0.0)
+        done = {(r["scene"], r["case"]) for r in results}
+        todo = [(s, c) for s, c in todo if (s, c[0]) not in done]
     scenes = {s: (dofjax.load_scene(scene_path(s)), dofjax.load_camera(scene_path(s)))
               for s in args.scenes}
     with tqdm(todo, desc="cases", unit="case") as bar:
