@@ -16,6 +16,7 @@ defocus_identity.png (worst RMSE over the textures against |c|, per shape).
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import time
@@ -110,6 +111,13 @@ def main() -> None:
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out + ".md", "w") as fh:
         fh.write(text)
+    with open(args.out + ".json", "w") as fh:
+        json.dump({"method": args.method, "rows": rows}, fh)
+    plot(rows, shapes, cols, args.method, args.out + ".png")
+
+
+def plot(rows, shapes, cols, method, path) -> None:
+    """Worst RMSE over the textures against c, one line per shape."""
     try:
         import matplotlib
         matplotlib.use("Agg")
@@ -119,18 +127,18 @@ def main() -> None:
         return
     fig, ax = plt.subplots(figsize=(8, 4.5))
     for name in shapes:
-        sub = [r for r in rows if r["shape"] == name]
+        sub = sorted((r for r in rows if r["shape"] == name), key=lambda r: r["c"])
         ax.plot([r["c"] for r in sub], [max(r[k] for k in cols) for r in sub], ".-", ms=3,
-                label=name)
+                lw=0.8, label=name)
     ax.axhline(TARGET, color="k", ls="--", lw=0.8, label="target")
     ax.set_xlabel("signed CoC c (px)")
     ax.set_ylabel("worst RMSE over the textures")
     ax.set_yscale("symlog", linthresh=1e-4)
-    ax.set_title(f"constant-depth identity, method {args.method!r}, float32")
+    ax.set_title(f"constant-depth identity, method {method!r}, float32")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(args.out + ".png", dpi=120)
-    print(f"wrote {args.out}.md and .png")
+    fig.savefig(path, dpi=120)
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":
