@@ -245,8 +245,9 @@ def test_hidden_switch_is_checked():
                for h in (None, False))
     assert np.max(np.abs(on - off)) > 0.01
     np.testing.assert_allclose(on[:3, :3], off[:3, :3], atol=1e-12)
-    # sliced, the default method: off by default (as the fitter's model), True switches it on
-    dflt, off, on = (np.asarray(dofjax.defocus(rgb, depth, cam, window=6, hidden=h))
+    # sliced: off by default (as the fitter's models), True switches it on
+    dflt, off, on = (np.asarray(dofjax.defocus(rgb, depth, cam, window=6, hidden=h,
+                                               method="sliced"))
                      for h in (None, False, True))
     np.testing.assert_array_equal(dflt, off)
     assert np.max(np.abs(on - off)) > 0.01
@@ -659,7 +660,7 @@ def test_subapertures_of_one_plane_add_up_to_the_whole_aperture(c):
                                             subapertures=8))
         np.testing.assert_allclose(eighths[m:-m, m:-m], whole[m:-m, m:-m], atol=1e-10)
     # the whole aperture's own pass blurs |c| 4 ... 6 at half resolution: close, not equal
-    plain = np.asarray(dofjax.defocus(rgb, depth, cam, window=8))
+    plain = np.asarray(dofjax.defocus(rgb, depth, cam, window=8, method="sliced"))
     assert np.abs(plain - whole)[m:-m, m:-m].max() < 0.05
     # one sector alone is not the whole (its spread is off-centre)
     quarter = np.asarray(sliced_defocus(rgb, depth, cam, window=8, cell=(0, 4)))
@@ -805,7 +806,8 @@ def test_subaperture_gradients_match_central_differences():
     p = jnp.array([2.1, 0.05])
     g_rev = assert_grads_match_fd(loss, p)
     # ... and they are not the whole aperture's
-    g1 = jax.grad(lambda p: jnp.sum(w * dofjax.defocus_fn(rgb, depth, cam, window=8)(*p)))(p)
+    g1 = jax.grad(lambda p: jnp.sum(w * dofjax.defocus_fn(rgb, depth, cam, window=8,
+                                                          method="sliced")(*p)))(p)
     assert np.abs(np.asarray(g1) - np.asarray(g_rev)).max() > 1e-6 * np.abs(np.asarray(g1)).max()
 
 
