@@ -19,8 +19,9 @@ scene layout share one compiled program (--case-margin: each case's own). Start:
 case numbers) or /1.5 (odd), aperture x0.6; bounds: fit_focus's defaults, made from the start
 (d > min(z_min, d0) / 2, A0 / 10 < A < 10 A0). Fit: the default `fit_focus` (8 starts, exact
 polish); each --methods token other than "exact" fits again with
-`defocus_options={"method": token}`. Time: median of --runs calls after the first; compile =
-first call minus the median (~0 when an earlier case compiled the same program).
+`defocus_options={"method": token}`. Time: for the first case of each compiled program, median
+of --runs calls after the first (1 for other methods), compile = first call minus that median;
+for the other cases one call (the program is compiled).
 
 --scipy (item 6): targets made by the exact model at the truth from the same sharp input (noise
 free); `fit_focus` as above, and `scipy.optimize.least_squares` (trf, 2-point finite differences,
@@ -29,12 +30,16 @@ in (u = 1/d, log A) within the same bounds, from the guess alone and from fit_fo
 (the guess and 7 points evenly spaced in u, at the guess's aperture; best cost kept). Success:
 both parameters within --tol relative.
 
-Writes benchmarks/results/fit_reference.{md,json,png} (--quick: under the cache folder).
+Order: the scenes in turn (each 4 consecutive cases span in front / inside / behind); cases
+whose target is cached first, the others rendered at the end; the --scipy part (on the first
+--scipy-cases) after every reference fit. Writes benchmarks/results/fit_reference.{md,json,png}
+after every case (--quick: under the cache folder).
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import math
 import os
@@ -100,6 +105,25 @@ def fit_window(sharp, guess, bounds):
     return float(min(bounds["aperture_radius"][1] * k * reach, MAX_WINDOW))
 
 
+def fit_timed(call, key, runs, compiled):
+    """(result, seconds, compile seconds or None, calls): `_common.timed` the first time a
+    program (`key`: method and input layout) runs; after that one call, nothing to compile."""
+    if key in compiled:
+        t0 = time.perf_counter()
+        res = jax.block_until_ready(call())
+        return res, time.perf_counter() - t0, None, 1
+    compiled.add(key)
+    res, t, compile_s, times = timed(call, runs)
+    return res, t, compile_s, len(times)
+
+
+def layout(c, token):
+    """What decides fit_focus's compiled program here besides the options: input shapes."""
+    sharp = c["sharp"]
+    return (token, c["margin"], sharp.depth.shape, sharp.mirror is not None,
+            sharp.layers is not None)
+
+
 def result_row(res, truth):
     row = {"converged": bool(res.converged), "identifiable": bool(res.identifiable),
            "ambiguous": bool(res.ambiguous), "message": str(res.message),
@@ -142,11 +166,26 @@ def case_head(c):
                 bounds={k: list(v) for k, v in c["bounds"].items()})
 
 
-def run_reference(c, args, bar):
+class _NotCached(Exception):
+    pass
+
+
+def reference_target(c, args, cached_only):
+    """The case's lens-sampled target from the cache (`_common.cached_reference`), rendered if
+    missing; with `cached_only`, None if missing."""
+    def missing():
+        raise _NotCached
+
+    try:
+        return cached_reference(c["scene"], c["cam"], scene_path(c["name"]), args.spp, 0,
+                                args.cache, render=missing if cached_only else None)[0]
+    except _NotCached:
+        return None
+
+
+def run_reference(c, target, args, bar):
     """Reference part of one case: the default fit_focus (and each other --methods token)."""
     name, label, cam, margin, sharp = c["name"], c["label"], c["cam"], c["margin"], c["sharp"]
-    bar.set_postfix_str(f"{name}, {label}: reference {args.spp} spp")
-    target, _ = cached_reference(c["scene"], cam, scene_path(name), args.spp, 0, args.cache)
     out = dict(case_head(c), fits=[])
     for token in args.methods:
         bar.set_postfix_str(f"{name}, {label}: fit ({token})")
@@ -158,14 +197,16 @@ def run_reference(c, args, bar):
         def call(kw=kw):
             return dofjax.fit_focus(target, sharp, c["guess"], margin=margin, **kw)
 
-        res, t, compile_s, times = timed(call, args.runs)
-        row = dict(method=token, time=t, compile=compile_s, first=compile_s + t,
-                   runs=len(times), rmse_truth=mismatch, **result_row(res, c["truth"]))
+        res, t, compile_s, runs = fit_timed(call, layout(c, token),
+                                            args.runs if token == "exact" else 1, args.compiled)
+        row = dict(method=token, time=t, compile=compile_s, runs=runs, load=os.getloadavg()[0],
+                   rmse_truth=mismatch,
+                   **result_row(res, c["truth"]))
         out["fits"].append(row)
         tqdm.write(f"  {name:16s} {label:22s} {token:7s} "
                    f"d {100 * row['rel_focus_distance']:+7.2f} % "
                    f"A {100 * row['rel_aperture_radius']:+7.2f} %  conv {row['converged']:d} "
-                   f"ident {row['identifiable']:d}  {t:6.2f} s  compile {compile_s:5.1f} s")
+                   f"ident {row['identifiable']:d}  {t:6.2f} s  compile {fmt_s(compile_s)} s")
     return out
 
 
@@ -183,8 +224,8 @@ def run_scipy(c, args, bar):
     def call():
         return dofjax.fit_focus(target, sharp, c["guess"], margin=margin)
 
-    res, t, compile_s, times = timed(call, args.runs)
-    ours = dict(time=t, compile=compile_s, runs=len(times), **result_row(res, truth))
+    res, t, compile_s, runs = fit_timed(call, layout(c, "exact"), 1, args.compiled)
+    ours = dict(time=t, compile=compile_s, runs=runs, **result_row(res, truth))
     ours["success"] = success(ours, args.tol)
 
     @jax.jit
@@ -259,7 +300,8 @@ def summary(results, methods):
         s = dict(method=m, cases=len(rows),
                  time_median=statistics.median(f["time"] for f in rows),
                  time_max=max(f["time"] for f in rows),
-                 compile_max=max(f["compile"] for f in rows),
+                 compile_max=max((f["compile"] for f in rows if f["compile"] is not None),
+                                 default=float("nan")),
                  converged=sum(f["converged"] for f in rows),
                  identifiable=sum(f["identifiable"] for f in rows),
                  rmse_truth=statistics.median(f["rmse_truth"] for f in rows),
@@ -288,6 +330,10 @@ def bias_word(s):
     return "mixed"
 
 
+def fmt_s(x):
+    return "-" if x is None or math.isnan(x) else f"{x:.1f}"
+
+
 def pct(x, digits=2):
     return f"{100 * x:+.{digits}f} %"
 
@@ -305,8 +351,9 @@ def write_outputs(results, scipy_results, args, base, elapsed):
         "start focus x1.5 (even cases) or /1.5 (odd), aperture x0.6; fit_focus's default "
         "bounds (from the start) and options; other methods by "
         "`defocus_options={'method': ...}`. Time: median of "
-        f"{args.runs} calls after the first; compile = first call minus median (~0 when an "
-        "earlier case compiled the same program). "
+        f"{args.runs} calls after the first (other methods: 1) for the first case of each "
+        "compiled program, whose compile is the first call minus that median; one call for "
+        "the other cases (compile '-': already compiled). "
         f"{platform.machine()}, {os.cpu_count()} CPU cores shared with other jobs (load average "
         f"{os.getloadavg()[0]:.1f} at the end), jax {jax.__version__}, renderer code "
         f"{code_hash()}. Run time {elapsed / 60:.0f} min.\n",
@@ -331,7 +378,7 @@ def write_outputs(results, scipy_results, args, base, elapsed):
                 f"{a['negative']}) | {bias_word(a)} | {'yes' if s['item3_met'] else 'no'} | "
                 f"{s['converged']}/{s['cases']} | {s['identifiable']}/{s['cases']} | "
                 f"{s['rmse_truth']:.4f} / {s['rmse_fit']:.4f} | {s['time_median']:.2f} "
-                f"({s['time_max']:.2f}) | {s['compile_max']:.1f} | "
+                f"({s['time_max']:.2f}) | {fmt_s(s['compile_max'])} | "
                 f"{'yes' if s['item6_met'] else 'no'} |")
         lines += ["", "![relative error per case](fit_reference.png)" if not args.quick
                   else "", "", "## Every case\n"]
@@ -343,8 +390,8 @@ def write_outputs(results, scipy_results, args, base, elapsed):
                   f"margin {r['margin']} px, fit window {r['window']:.1f} px.\n",
                   "| method | d fit | d err | d se (tiles) | A fit | A err | A se (tiles) "
                   "| converged | identifiable | RMSE at truth / fit | fit s | compile s "
-                  "| message |",
-                  "|---|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---|"]
+                  "| load avg | message |",
+                  "|---|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---|"]
         for f in r["fits"]:
             lines.append(
                 f"| {f['method']} | {f['focus_distance']:.5g} | {pct(f['rel_focus_distance'])} "
@@ -353,8 +400,8 @@ def write_outputs(results, scipy_results, args, base, elapsed):
                 f"{f['aperture_radius_se']:.2g} ({f['aperture_radius_se_tiles']:.2g}) | "
                 f"{'yes' if f['converged'] else 'no'} | "
                 f"{'yes' if f['identifiable'] else 'no'} | {f['rmse_truth']:.4f} / "
-                f"{f['rmse_fit']:.4f} | {f['time']:.2f} | {f['compile']:.1f} | "
-                f"{f['message'].replace('|', '/')} |")
+                f"{f['rmse_fit']:.4f} | {f['time']:.2f} | {fmt_s(f['compile'])} | "
+                f"{f['load']:.1f} | {f['message'].replace('|', '/')} |")
         lines.append("")
     scipy_summ = scipy_summary(scipy_results)
     if scipy_results:
@@ -362,7 +409,7 @@ def write_outputs(results, scipy_results, args, base, elapsed):
     os.makedirs(os.path.dirname(base), exist_ok=True)
     with open(base + ".md", "w") as fh:
         fh.write("\n".join(lines) + "\n")
-    saved = {k: v for k, v in vars(args).items() if k not in ("cache", "out")}
+    saved = {k: v for k, v in vars(args).items() if k not in ("cache", "out", "compiled")}
     with open(base + ".json", "w") as fh:
         json.dump(dict(args=saved, summary=summ, results=results, scipy_summary=scipy_summ,
                        scipy=scipy_results), fh, indent=1)
@@ -381,7 +428,8 @@ def scipy_summary(scipy_results):
         out.append(dict(method=k, cases=len(rows), success=sum(r["success"] for r in rows),
                         time_median=statistics.median(r["time"] for r in rows),
                         time_total=sum(r["time"] for r in rows),
-                        compile_max=max(r.get("compile", 0.0) for r in rows)))
+                        compile_max=max((r["compile"] for r in rows
+                                         if r.get("compile") is not None), default=float("nan"))))
     return out
 
 
@@ -395,8 +443,10 @@ def scipy_lines(scipy_results, summ, args):
              "jitted residual in (1/d, log A) within fit_focus's default bounds, from the guess "
              f"alone and from fit_focus's {args.starts} starts (the guess and "
              f"{args.starts - 1} points evenly spaced in 1/d, at the guess's aperture; lowest "
-             f"cost kept). Success: |d and A error| <= {args.tol:g}. Times per fit: fit_focus "
-             "median of runs after compile; scipy one run after its residual's compile.\n",
+             f"cost kept; at most {args.scipy_max_nfev} residual evaluations per start). Success: "
+             f"|d and A error| <= {args.tol:g}. Times per fit: fit_focus one call after the "
+             "first (compiled by the reference part); scipy one run after its residual's "
+             "compile.\n",
              "| solver | success | time per fit, median s | total s | compile s max |",
              "|---|---:|---:|---:|---:|"]
     names = {"fit_focus": "fit_focus (default, 8 starts, exact polish)",
@@ -405,13 +455,14 @@ def scipy_lines(scipy_results, summ, args):
         label = names.get(s["method"], f"scipy least_squares, FD, {s['method'][6:]} starts "
                           "(best kept)")
         lines.append(f"| {label} | {s['success']}/{n} | {s['time_median']:.2f} | "
-                     f"{s['time_total']:.1f} | {s['compile_max']:.1f} |")
+                     f"{s['time_total']:.1f} | {fmt_s(s['compile_max'])} |")
     ours = summ[0]
     same = [s for s in summ[1:] if s["success"] >= ours["success"]]
     if same:
         s = min(same, key=lambda s: s["time_median"])
-        lines.append(f"\nAt equal success rate ({ours['success']}/{n}): fit_focus "
-                     f"{ours['time_median']:.2f} s, scipy ({s['method']}) "
+        lines.append(f"\nfit_focus succeeds in {ours['success']}/{n} at "
+                     f"{ours['time_median']:.2f} s per fit; the fastest scipy row with at least "
+                     f"that success rate ({s['method']}, {s['success']}/{n}) takes "
                      f"{s['time_median']:.2f} s per fit "
                      f"({s['time_median'] / ours['time_median']:.1f}x).\n")
     else:
@@ -446,12 +497,15 @@ def plot(results, methods, file):
         ax.axhspan(-100 * med, 100 * med, color="0.8", label=f"median target ±{100 * med:g} %")
         ax.axhline(0, color="k", lw=0.6)
         for i, m in enumerate(methods):
-            pts = [(j + 0.12 * (i - (len(methods) - 1) / 2), 100 * f["rel_" + k])
+            # (an end point at focus infinity is +100 % and up: shown at 1000 %)
+            pts = [(j + 0.12 * (i - (len(methods) - 1) / 2),
+                    min(100 * f["rel_" + k], 1000.0))
                    for j, r in enumerate(results) for f in r["fits"] if f["method"] == m]
             ax.plot([p[0] for p in pts], [p[1] for p in pts], "osD^v"[i % 5],
                     color=f"C{i}", label=m, ls="none")
+        ax.set_yscale("symlog", linthresh=2 * 100 * mx)
         ax.set_xticks(x, names, rotation=70, fontsize=6)
-        ax.set_ylabel(f"{SHORT[k]}: fitted / true - 1 (%)")
+        ax.set_ylabel(f"{SHORT[k]}: fitted / true - 1 (%), linear within ±{200 * mx:g} %")
         ax.set_title(f"{k} relative error per case", fontsize=10)
         ax.grid(True, lw=0.3)
     axes[0].legend(fontsize=7)
@@ -475,14 +529,18 @@ def main(argv=None):
     ap.add_argument("--case-margin", action="store_true",
                     help="guard band of each case's own largest |c| + 2 px (default: the "
                          "largest over all cases + 2, one compiled program per scene layout)")
-    ap.add_argument("--runs", type=int, default=2, help="timed calls after the first (2)")
+    ap.add_argument("--runs", type=int, default=2,
+                    help="timed calls after the first (2; 1 for --methods other than exact "
+                         "and for the --scipy part's fit_focus)")
     ap.add_argument("--scipy", action="store_true",
                     help="also fit model-made targets with fit_focus and scipy least_squares")
     ap.add_argument("--scipy-only", action="store_true", help="only the --scipy part")
+    ap.add_argument("--scipy-cases", type=int, default=None,
+                    help="the --scipy part on the first N cases of the run (default all)")
     ap.add_argument("--starts", type=int, default=8, help="scipy's starts (fit_focus's: 8)")
     ap.add_argument("--diff-step", type=float, default=1e-3, help="scipy's relative FD step")
-    ap.add_argument("--scipy-max-nfev", type=int, default=200,
-                    help="scipy's residual evaluations per start, at most (200)")
+    ap.add_argument("--scipy-max-nfev", type=int, default=100,
+                    help="scipy's residual evaluations per start, at most (100)")
     ap.add_argument("--tol", type=float, default=1e-3, help="success: relative error <= tol")
     ap.add_argument("--cache", default=os.path.join(HERE, "results", "cache"))
     ap.add_argument("--out", default=None, help="output path without extension (default "
@@ -494,6 +552,8 @@ def main(argv=None):
     args.size = args.size or (64 if args.quick else 256)
     args.spp = args.spp or (256 if args.quick else 2048)
     args.scipy = args.scipy or args.scipy_only
+    args.scipy_cases = 10**9 if args.scipy_cases is None else args.scipy_cases
+    args.compiled = set()  # fit_focus programs compiled so far (`fit_timed`)
     if args.spp < 1 or args.runs < 1 or args.starts < 2:
         ap.error("--spp and --runs must be >= 1, --starts >= 2")
     args.methods = [] if args.scipy_only else [t for t in args.methods.split(",") if t]
@@ -512,21 +572,41 @@ def main(argv=None):
     todo = [(s, case) for s in args.scenes for case in CASES[s]]
     if args.quick:
         todo = [(s, CASES[s][QUICK[s]]) for s in args.scenes]
-    # cases with the same largest |c| share the guard band, hence compiled programs
-    todo.sort(key=lambda t: (t[1][2], t[0] == "mirror_tilted"))
+    if args.case_margin:  # cases with the same largest |c| share the guard band and programs
+        todo.sort(key=lambda t: (t[1][2], t[0] == "mirror_tilted"))
+    else:  # one program per scene layout whatever the order: take the scenes in turn, each
+        # round one case per scene, shifted so that every 4 span in front / inside / behind
+        names = list(CASES)
+        todo.sort(key=lambda t: ((CASES[t[0]].index(t[1]) - names.index(t[0])) % 3,
+                                 names.index(t[0])))
     scenes = {s: (dofjax.load_scene(scene_path(s)), dofjax.load_camera(scene_path(s)))
               for s in args.scenes}
     t0 = time.perf_counter()
     results, scipy_results = [], []
-    with tqdm(todo, desc="cases", unit="case") as bar:
-        for name, case in bar:
+    # cases whose target is cached run first; the others are rendered at the end
+    pending, deferred, scipy_todo = collections.deque(todo), set(), []
+    with tqdm(total=len(todo), desc="cases", unit="case") as bar:
+        while pending:
+            name, case = pending.popleft()
             bar.set_postfix_str(f"{name}, {case[0]}: sharp input")
             c = prepare_case(name, *scenes[name], case, index[(name, case[0])], args)
             c["scene"] = scenes[name][0]
             if args.methods:
-                results.append(run_reference(c, args, bar))
-            if args.scipy:
-                scipy_results.append(run_scipy(c, args, bar))
+                bar.set_postfix_str(f"{name}, {case[0]}: target, {args.spp} spp")
+                target = reference_target(c, args, (name, case[0]) not in deferred)
+                if target is None:
+                    deferred.add((name, case[0]))
+                    pending.append((name, case))
+                    continue
+                results.append(run_reference(c, target, args, bar))
+            if args.scipy and len(scipy_todo) < args.scipy_cases:
+                scipy_todo.append(c)
+            write_outputs(results, scipy_results, args, base, time.perf_counter() - t0)
+            bar.update()
+    # the scipy part after every reference fit (it is the slow one)
+    with tqdm(scipy_todo, desc="scipy part", unit="case") as bar:
+        for c in bar:
+            scipy_results.append(run_scipy(c, args, bar))
             write_outputs(results, scipy_results, args, base, time.perf_counter() - t0)
     for lst in (results, scipy_results):
         lst.sort(key=lambda r: index[(r["scene"], r["case"])])
