@@ -434,9 +434,9 @@ def main(argv=None):
                          "hidden=True and on peeled layers; lens: single-layer, on the cases "
                          "marked for it; +subK: peeled layers)")
     ap.add_argument("--scenes", default=",".join(CASES), help="comma-separated scene names")
-    ap.add_argument("--cases", choices=("all", "lens"), default=None,
-                    help="all cases, or only those marked for the lens method (one per scene; "
-                         "default all, --quick: lens)")
+    ap.add_argument("--cases", choices=("all", "lens", "other"), default=None,
+                    help="all cases, only those marked for the lens method (one per scene), or "
+                         "only the others (default all, --quick: lens)")
     ap.add_argument("--no-lens", action="store_true", help="skip the lens method's rows")
     ap.add_argument("--resume", action="store_true",
                     help="keep the cases of the output's .json (same settings) and run the rest")
@@ -482,7 +482,7 @@ def main(argv=None):
     source_version()
     args.cases = args.cases or ("lens" if args.quick else "all")
     todo = [(s, case) for s in args.scenes for case in CASES[s]
-            if args.cases == "all" or case[3]]
+            if args.cases == "all" or case[3] == (args.cases == "lens")]
     # the lens cases (4096 spp) first; the mirror scene (its own compiled programs) last
     todo.sort(key=lambda t: (t[0] == "mirror_tilted", not t[1][3]))
     t0 = time.perf_counter()
@@ -493,10 +493,11 @@ def main(argv=None):
         with open(base + ".json") as fh:
             saved = json.load(fh)
         same = all(saved["args"].get(k) == getattr(args, k) for k in (
-            "size", "spp", "spp_other", "sharp_spp", "layers", "methods", "no_lens"))
+            "size", "spp", "spp_other", "sharp_spp", "layers", "methods"))
         if not same:
             ap.error(f"--resume: {base}.json was made with other settings")
         results = saved["results"]
+        args.command = saved["args"]["command"]  # the run this one completes
         t0 -= saved.get("elapsed", 0.0)
         done = {(r["scene"], r["case"]) for r in results}
         todo = [(s, c) for s, c in todo if (s, c[0]) not in done]
