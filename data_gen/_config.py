@@ -37,7 +37,7 @@ from ._noise import NOISE_MODELS, NOISE_PARAMS
 KINDS = ("planes", "occluders", "mirror", "highlights", "wide_depth", "single_plane")
 PROCEDURAL_TEXTURES = ("checker", "grid", "noise", "stripes")
 TARGET_METHODS = ("defocus", "reference")
-# "exact" is the model `dofjax.fit_focus` fits by default, so noise-free targets are exact for it
+# "sliced" is the model `dofjax.fit_focus` fits by default, so noise-free targets are exact for it
 DEFOCUS_METHODS = ("exact", "sliced", "pyramid")
 # The most textures one scene of any kind uses (occluders: background, 2 quads, 2 spheres).
 MAX_TEXTURES_PER_SCENE = 5

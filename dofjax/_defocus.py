@@ -689,7 +689,7 @@ def as_mirror(name: str, mirror, dtype) -> Mirror | None:
 
 def check_hidden(name: str, hidden, method: str, layers=None) -> bool:
     """The hidden-background estimate's switch: None is the method's default (on for "pyramid"
-    and "lens", off for "exact", the default, and "sliced", so that a bare call is the fitter's
+    and "lens", off for "sliced", the default, and "exact", so that a bare call is the fitter's
     model); True needs single-layer input (peeled layers are the real hidden surfaces)."""
     if hidden is None:
         return method not in ("exact", "sliced")
@@ -803,7 +803,7 @@ def defocus(
     mirror: Mirror | None = None,
     window: float | None = None,
     return_info: bool = False,
-    method: str = "exact",
+    method: str = "sliced",
     samples: int | None = None,
     margin: int = 0,
     hidden: bool | None = None,
@@ -851,10 +851,13 @@ def defocus(
             a bare `defocus` call is the model a bare `fit_focus` fits), "pyramid" (the
             layered pyramid above: 30-80x slower, minutes to compile under `jacfwd`/`grad`;
             every level of |c| <= 4 at full resolution, so a constant depth up to 4 px is one
-            convolution) or "lens" (`_lens.py`: the same slices read along `LENS_SAMPLES`
-            rays per pixel through points of the aperture, occlusion decided per ray: closest
-            to the lens-sampling reference behind blurred edges, and ~3000x slower than
-            "sliced"). All implement the scatter model of DESIGN.md section 3.
+            convolution), "exact" (`_exact.py`: every source spread by its own kernel, so a
+            constant depth is the exact kernel convolution for any |c| and aperture shape;
+            ~17x "sliced" at 512x512 with every slice reached; docs/defocus.md) or "lens"
+            (`_lens.py`: the same slices read along `LENS_SAMPLES` rays per pixel through
+            points of the aperture, occlusion decided per ray: closest to the lens-sampling
+            reference behind blurred edges, and ~3000x slower than "sliced"). All implement
+            the scatter model of DESIGN.md section 3.
         margin: the sharp input covers this many px beyond the frame on every side (rendered
             with `camera.padded(margin)`); the result is cropped to the camera's frame. The
             blur then gathers what lies just outside the frame, as a lens does: with a margin
@@ -986,7 +989,7 @@ def defocus_fn(
     reflection: ArrayLike | None = None,
     reflection_depth: ArrayLike | None = None,
     layers: Layers | None = None,
-    method: str = "exact",
+    method: str = "sliced",
     samples: int | None = None,
     margin: int = 0,
     hidden: bool | None = None,
@@ -995,10 +998,10 @@ def defocus_fn(
 ):
     """A pure, jittable `f(focus_distance, aperture_radius) -> (H, W, 3)` for fitting.
 
-    `method` is "sliced" (default), "pyramid" or "lens", `samples` the lens method's points per
-    pixel, `margin` the sharp input's guard band, `hidden` the hidden-background estimate and
-    `subapertures` the sliced method's aperture sectors, as in `defocus` (the sliced method's
-    estimate is made here, once).
+    `method` is "sliced" (default), "exact", "pyramid" or "lens", `samples` the lens method's
+    points per pixel, `margin` the sharp input's guard band, `hidden` the hidden-background
+    estimate and `subapertures` the sliced method's aperture sectors, as in `defocus` (the
+    sliced and exact methods' estimate is made here, once).
 
     The image, depth, field of view and shape are validated once here (host) and closed over;
     `f` runs only the jitted defocus core with a fixed window, so it can be `jax.jit`-ed,

@@ -1027,8 +1027,8 @@ class DefocusModel:
     Attributes:
         window: the largest |CoC| (px) supported; larger |c| is clamped to it by the defocus.
         shape, blades, rotation, ratio: aperture shape, as `dofjax.defocus`.
-        method: "exact" (default: every source's own kernel), "sliced" (two kernels per
-            octave, reduced resolution for large blurs: fast, approximate between levels),
+        method: "sliced" (default: two kernels per octave, reduced resolution for large
+            blurs: fast, exact only at its levels), "exact" (every source's own kernel),
             "pyramid" or "lens" (occlusion per lens ray), as `dofjax.defocus(..., method=...)`.
         samples: lens points per pixel of method "lens" (None: 256), as `dofjax.defocus`.
         hidden: the hidden-background estimate for single-layer input, as `dofjax.defocus`
@@ -1042,7 +1042,7 @@ class DefocusModel:
     blades: int | None = None
     rotation: float = 0.0
     ratio: float = 1.0
-    method: str = "exact"
+    method: str = "sliced"
     samples: int | None = None
     hidden: bool | None = None
     subapertures: int = 1
@@ -1920,9 +1920,9 @@ def fit_focus(
             defocus clamps). The multi-start level uses window / 2^L.
         defocus_options: shape/blades/rotation/ratio/method/samples/hidden/subapertures passed to
             `dofjax.defocus` ({"hidden": True}: the hidden-background estimate of single-layer
-            input, ~1.5x its cost per step). The defaults are `dofjax.defocus`'s ("exact", no
+            input, ~1.5x its cost per step). The defaults are `dofjax.defocus`'s ("sliced", no
             hidden-background estimate), so a target made with a bare `dofjax.defocus(...)` is
-            the model a bare fit fits; pass the same options to both. The exact model
+            the model a bare fit fits; pass the same options to both. {"method": "exact"}
             polishes only: the multi-start, scan and screen run with "sliced". For photographs
             (or lens-sampled targets) of an RGBD with peeled layers, {"method": "lens"} decides
             occlusion per lens ray, closest to a real lens behind blurred edges; it polishes

@@ -8,7 +8,7 @@ import argparse
 
 def add_arguments(p: argparse.ArgumentParser, lens_use: str = "") -> None:
     """Add --method / --samples / --subapertures to `p`; `lens_use` ends --method's help."""
-    p.add_argument("--method", default="exact", choices=("exact", "sliced", "pyramid", "lens"),
+    p.add_argument("--method", default="sliced", choices=("sliced", "exact", "pyramid", "lens"),
                    help="the fit's defocus model (exact, lens: polish what a sliced search found"
                    f"{lens_use})")
     p.add_argument("--samples", type=int, help="--method lens: lens points per pixel "

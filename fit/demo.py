@@ -52,7 +52,7 @@ def _run(a: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     sharp = dofjax.render(scene, camera)
     true_cam = camera.replace(focus_distance=a.focus, aperture_radius=a.aperture)
-    # the default method ("exact") is fit_focus's default model
+    # the default method ("sliced") is fit_focus's default model
     target = dofjax.defocus(sharp.rgb, sharp.depth, true_cam, window=a.window)
     target = target + a.noise * jax.random.normal(jax.random.key(a.seed), target.shape,
                                                   target.dtype)

@@ -1,4 +1,4 @@
-"""The exact method ("exact", the default): constant depth equals the exact kernel convolution
+"""The exact method ("exact"): constant depth equals the exact kernel convolution
 for every CoC (not only at level values), for the disc, polygons and an anamorphic aperture, in
 float32; its derivatives equal those of that convolution (float64 finite differences); and on
 varying depth it equals a brute-force per-source scatter where nothing occludes."""
@@ -57,7 +57,7 @@ def test_constant_depth_is_the_exact_convolution_float32(name):
     rgb = textures().astype(np.float32)
     for c in COCS:
         depth = np.full((N, N), depth_for_coc(c, cam), np.float32)
-        out = np.asarray(defocus(rgb, depth, cam, window=12, **kw))  # one program per shape
+        out = np.asarray(defocus(rgb, depth, cam, window=12, method="exact", **kw))
         ref = exact_convolution(textures(), c, shape)
         m = int(math.ceil(abs(c) * shape[2])) + 6
         rmse = np.sqrt(np.mean((out - ref)[m:-m, m:-m] ** 2, axis=(0, 1)))
@@ -69,8 +69,9 @@ def test_float32_matches_float64():
     cam = camera()
     rgb = textures()
     depth = np.full((N, N), depth_for_coc(-6.4, cam))
-    out64 = np.asarray(defocus(rgb, depth, cam, window=8))
-    out32 = np.asarray(defocus(rgb.astype(np.float32), depth.astype(np.float32), cam, window=8))
+    out64 = np.asarray(defocus(rgb, depth, cam, window=8, method="exact"))
+    out32 = np.asarray(defocus(rgb.astype(np.float32), depth.astype(np.float32), cam, window=8,
+                               method="exact"))
     assert out32.dtype == np.float32
     assert np.abs(out32 - out64).max() < 2e-5
 
@@ -87,7 +88,7 @@ def test_derivatives_match_the_exact_convolution(c):
     rgb = textures(n)
     z = depth_for_coc(c, cam)
     depth = np.full((n, n), z)
-    f = defocus_fn(rgb, depth, cam, window=8)
+    f = defocus_fn(rgb, depth, cam, window=8, method="exact")
     jac = jax.jit(jax.jacfwd(lambda p: f(p[0], p[1])))(jnp.array([2.0, 0.5]))
     m = int(math.ceil(abs(c))) + 6
     inner = np.s_[m:-m, m:-m]
@@ -110,7 +111,7 @@ def test_grad_equals_jacfwd_and_finite_differences():
     rgb = textures(n)
     depth = np.full((n, n), 3.0)
     depth[:, : n // 2] = 1.2
-    f = defocus_fn(rgb, depth, cam, window=8)
+    f = defocus_fn(rgb, depth, cam, window=8, method="exact")
     w = np.random.default_rng(2).normal(size=(n, n, 3))
 
     @jax.jit

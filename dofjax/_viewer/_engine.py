@@ -25,9 +25,9 @@ from .._io import srgb_encode
 from ._source import Source, check_target
 
 # The defocus methods, in one place: LIVE while a slider moves (the fastest the library offers),
-# FINAL when it rests (None: the library's default, the exact model). Equal: no refinement.
+# FINAL when it rests (the exact kernel; None: the library's default). Equal: no refinement.
 LIVE_METHOD: str | None = "sliced"
-FINAL_METHOD: str | None = None
+FINAL_METHOD: str | None = "exact"
 
 # Difference and residual pictures span +-max|difference|, at least +-1 % of white: a match to
 # rounding is shown white, not as amplified noise.
