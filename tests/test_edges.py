@@ -120,7 +120,7 @@ def test_split_pixel_derivatives_match_finite_differences(subapertures, p0):
     def f(p):
         cam = CAM.replace(focus_distance=p[0], aperture_radius=p[1])
         return dofjax.defocus(rgbd, cam, window=4.0, subapertures=subapertures,
-                              method="sliced" if subapertures > 1 else "exact")
+                              method="sliced")
 
     # (3, 0.6): |c| 3.3 px on the card and on the backdrop, levels apart (reduced-resolution
     # runs too); (2.2, 0.15): 0.2 and 1.4 px, where the shares' occlusion ramps
