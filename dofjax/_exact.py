@@ -13,10 +13,12 @@ plane, to the node blend's few 1e-4 beyond it):
   exact wherever no tap changes slope inside the bracket and close elsewhere (`_node_weight`).
   Each node slice is one FFT product at full resolution.
 
-Slices, their weights, occlusion and coverage follow `_sliced.py` (a source is split between the
-two slices that bracket its fractional level index; a slice is hidden by every slice nearer than
-the previous one and by the previous one's sources in front of its level; the sum is
-renormalised by min(coverage, 1)), so peeled layers, silhouette shares and mirrors work alike.
+Occlusion follows `_sliced.py`, with its levels (two per octave) as occlusion groups: a group
+is hidden by every group nearer than the previous one and by the previous group's last slice
+(its sources in front of that level fully, those behind by their weight), and the slices of one
+group do not hide each other, so a surface receding across a group's dense node slices is not
+ordered against itself. The sum is renormalised by min(coverage, 1), so peeled layers,
+silhouette shares and mirrors work alike.
 Derivatives are JAX's own (forward and reverse mode through the scans).
 """
 
@@ -33,7 +35,7 @@ import numpy as np
 from ._camera import coc_unchecked
 from ._kernels import MAGNITUDES, R0, bucket_window, radial_function, soft_kernel
 from ._numerics import safe_div
-from ._sliced import _fft_size, coverages, raw_sources
+from ._sliced import _fft_size, _level_index, _levels, coverages, raw_sources
 
 # |c| (px) up to which slices spread each source by its own kernel (levels 0, 1, 2, 3).
 GATHER_COC = 3.0
@@ -54,6 +56,8 @@ class _Plan(NamedTuple):
     f_values: np.ndarray  # every tap's radial value (for N(rho))
     brackets: tuple  # per bracket of |c|: ("q", c0, c1) or ("rho", rho0, rho1, n0, n1)
     node_kernels: tuple  # per node level (front to back), the normalised kernel
+    first: np.ndarray  # per level: it starts an occlusion group (`_group`)
+    boundary: np.ndarray  # per node bracket: its two nodes lie in different groups
 
 
 def _unnormalised_sum(rho: float, blades, rotation, ratio) -> float:
@@ -101,8 +105,22 @@ def plan(window: float, blades, rotation: float, ratio: float) -> _Plan:
     node_kernels = tuple(
         [soft_kernel(r, blades, rotation, ratio, flip=True) for r in nodes[::-1]]
         + [soft_kernel(r, blades, rotation, ratio, flip=False) for r in nodes])
+    group = [_group(c) for c in levels]
+    first = np.array([p == 0 or group[p] != group[p - 1] for p in range(len(levels))])
+    boundary = np.array([_group(math.sqrt(a * a - R0 * R0)) != _group(math.sqrt(b * b - R0 * R0))
+                         for a, b in zip(rhos[:-1], rhos[1:])], bool)
     return _Plan(levels, len(nodes), rho_g, half, groups_t, np.asarray(f_values),
-                 tuple(brackets), node_kernels)
+                 tuple(brackets), node_kernels, first, boundary)
+
+
+def _group(c: float) -> int:
+    """Occlusion group of a level of signed CoC c: its bracket of the sliced method's levels
+    (`MAGNITUDES`, two per octave), signed. The slices of one group do not hide each other,
+    so a surface that recedes across a group's dense node slices is not ordered against
+    itself (module docstring)."""
+    m = abs(c)
+    k = next(i for i, v in enumerate(MAGNITUDES) if v >= m - 1e-9)
+    return int(math.copysign(k, c)) if m > 0 else 0
 
 
 @functools.lru_cache(maxsize=8)
@@ -219,7 +237,8 @@ def level_index(c, p: _Plan):
         # the slice behind gets the composited share: the smaller node's near the lens, the
         # larger one's beyond the focal plane
         near = c > 0
-        x = _unblend(jnp.where(near, 1.0 - t, t))
+        y = jnp.where(near, 1.0 - t, t)
+        x = jnp.where(jnp.take(jnp.asarray(p.boundary), k), _unblend(y), y)
         g = g + jnp.where(rho > p.rho_g, k + jnp.where(near, 1.0 - x, x), 0.0)
     n = len(p.levels) // 2
     return n - jnp.sign(c) * g
@@ -280,8 +299,10 @@ def exact_defocus(rgb, depth, camera, *, window: float, blades=None, rotation=0.
     surface_refl = reflection
     colours, depths, raws, front = raw_sources(rgb, depth, surface_refl, layers)
     c = jnp.stack([coc_unchecked(z, camera).astype(dtype) for z in depths])
-    i = level_index(c, p)
-    alpha = coverages(jnp.stack(raws).astype(dtype), i, front)
+    # peeled layers' gates and the silhouette shares' occlusion count occlusion groups, i.e.
+    # the sliced method's levels
+    alpha = coverages(jnp.stack(raws).astype(dtype), _level_index(c, _levels(float(window))),
+                      front)
     masked = mirror is not None
     loose = reflection is not None and not masked
 
@@ -361,24 +382,28 @@ def exact_defocus(rgb, depth, camera, *, window: float, blades=None, rotation=0.
         refl = fft_blur(per[n_src], spec) if loose else 0.0
         return surf, refl
 
-    def composite(state, blurred):
+    def composite(state, blurred, next_first):
+        """The slice seen through what hides its group; what hides the next slice: the same
+        within a group, else every slice before this one and this one's occluders."""
         acc, cov, hiding, hiding_next, acc_refl = state
         surf, refl = blurred
         # (colour [+ footprint, occluded and renormalised alike], coverage, occluders)
         colour, cov_b, occ_b = surf[:-2], surf[-2], surf[-1]
         transmit = jnp.clip(1.0 - hiding, 0.0, 1.0)
-        return (acc + transmit * colour, cov + transmit * cov_b, hiding_next + occ_b,
-                hiding_next + cov_b, acc_refl + refl)
+        return (acc + transmit * colour, cov + transmit * cov_b,
+                jnp.where(next_first, hiding_next + occ_b, hiding), hiding_next + cov_b,
+                acc_refl + refl)
 
-    def skip(state):
-        acc, cov, _, hiding_next, acc_refl = state
-        return (acc, cov, hiding_next, hiding_next, acc_refl)
+    def skip(state, next_first):
+        acc, cov, hiding, hiding_next, acc_refl = state
+        return (acc, cov, jnp.where(next_first, hiding_next, hiding), hiding_next, acc_refl)
 
     # which slices any source reaches (a hat's support is the open interval around its level)
     big = jnp.asarray(1e30, dtype)
     lo = jnp.min(jnp.stack([jnp.min(jnp.where(a > 0, x, big)) for a, x in zip(alphas, idx)]))
     hi = jnp.max(jnp.stack([jnp.max(jnp.where(a > 0, x, -big)) for a, x in zip(alphas, idx)]))
     n_lv = len(p.levels)
+    next_first = jnp.asarray(np.append(p.first[1:], True))
     lv = jnp.arange(n_lv, dtype=dtype)
     reached = (hi > lv - 1.0) & (lo < lv + 1.0)
 
@@ -392,11 +417,13 @@ def exact_defocus(rgb, depth, camera, *, window: float, blades=None, rotation=0.
 
         @jax.checkpoint  # reverse mode stores the carries only and recomputes each slice
         def body(st, x):
-            level, has, spec = x
-            new = jax.lax.cond(has, lambda s: composite(s, blur_node(level, spec)), skip, st)
+            level, has, nf, spec = x
+            new = jax.lax.cond(has, lambda s: composite(s, blur_node(level, spec), nf),
+                               lambda s: skip(s, nf), st)
             return new, None
 
-        xs = (jnp.asarray(ids, dtype), reached[np.asarray(ids)], specs)
+        xs = (jnp.asarray(ids, dtype), reached[np.asarray(ids)], next_first[np.asarray(ids)],
+              specs)
         return jax.lax.scan(body, state, xs)[0]
 
     n = p.n_node
@@ -408,11 +435,13 @@ def exact_defocus(rgb, depth, camera, *, window: float, blades=None, rotation=0.
 
     @jax.checkpoint
     def gather_body(st, x):
-        level, has = x
-        return jax.lax.cond(has, lambda s: composite(s, blur_gather(level)), skip, st), None
+        level, has, nf = x
+        return jax.lax.cond(has, lambda s: composite(s, blur_gather(level), nf),
+                            lambda s: skip(s, nf), st), None
 
     state = jax.lax.scan(gather_body, state, (jnp.asarray(gather_ids, dtype),
-                                              reached[np.asarray(gather_ids)]))[0]
+                                              reached[np.asarray(gather_ids)],
+                                              next_first[np.asarray(gather_ids)]))[0]
     if far_ids:
         state = run_nodes(state, far_ids, p.node_kernels[n:])
     acc, cov, _, _, acc_refl = state
