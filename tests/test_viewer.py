@@ -105,8 +105,9 @@ def test_frame_is_the_library_defocus(client, engine):
     r = client.get("/api/frame", params=dict(focus=d, aperture=a, seq=1, client="t1"))
     assert r.status_code == 200 and r.headers["content-type"] == "image/jpeg"
     assert r.headers["x-dofjax-exact"] == "1" and r.headers["x-dofjax-seq"] == "1"
+    final = {} if _engine.FINAL_METHOD is None else {"method": _engine.FINAL_METHOD}
     expected = dofjax.defocus(engine.source.rgbd, engine.camera.replace(
-        focus_distance=d, aperture_radius=a), window=engine.window)
+        focus_distance=d, aperture_radius=a), window=engine.window, **final)
     got = _decode(r.content)
     assert got.shape == (H, W, 3)
     # the sRGB JPEG of the library's image (same encoder; float rounding may move a level)
@@ -213,7 +214,9 @@ def test_reference_job(client, engine):
     cam = engine.camera.replace(focus_distance=d, aperture_radius=a)
     ref = np.asarray(dofjax.render_reference(engine.source.scene, cam, spp=16,
                                              key=jax.random.key(3)), np.float64)
-    post = np.asarray(dofjax.defocus(engine.source.rgbd, cam, window=engine.window), np.float64)
+    final = {} if _engine.FINAL_METHOD is None else {"method": _engine.FINAL_METHOD}
+    post = np.asarray(dofjax.defocus(engine.source.rgbd, cam, window=engine.window, **final),
+                      np.float64)
     assert result["rmse"] == pytest.approx(np.sqrt(np.mean((post - ref) ** 2)), rel=1e-4)
     for which in ("reference", "postprocess", "difference"):
         img = client.get(f"/api/reference/{which}.png")
