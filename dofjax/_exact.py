@@ -296,9 +296,19 @@ def exact_defocus(rgb, depth, camera, *, window: float, blades=None, rotation=0.
     b = p.half
     pad2 = ((b, b), (b, b))
 
-    surface_refl = reflection
-    colours, depths, raws, front = raw_sources(rgb, depth, surface_refl, layers)
-    c = jnp.stack([coc_unchecked(z, camera).astype(dtype) for z in depths])
+    colours, depths, raws, front = raw_sources(rgb, depth, reflection, layers)
+    inside = jnp.pad(jnp.ones((h, w), bool), pad2)
+    centre = float(len(p.levels) // 2)
+
+    def placed(z):
+        """Signed CoC of z-depths, padded by their edge values (every CoC finite; nothing is
+        there anyway), and each source's level index, kernel radius and side."""
+        cz = coc_unchecked(jnp.pad(z, pad2, mode="edge"), camera).astype(dtype)
+        return (cz, jnp.where(inside, level_index(cz, p), centre),
+                jnp.minimum(jnp.sqrt(cz * cz + R0 * R0), p.rho_g), cz > 0)
+
+    where = [placed(z) for z in depths]
+    c = jnp.stack([x[0][b: b + h, b: b + w] for x in where])
     # peeled layers' gates and the silhouette shares' occlusion count occlusion groups, i.e.
     # the sliced method's levels
     alpha = coverages(jnp.stack(raws).astype(dtype), _level_index(c, _levels(float(window))),
@@ -309,8 +319,7 @@ def exact_defocus(rgb, depth, camera, *, window: float, blades=None, rotation=0.
     def pad(x):
         return jnp.pad(x, ((0, 0),) * (x.ndim - 2) + pad2)
 
-    inside = jnp.pad(jnp.ones((h, w), bool), pad2)
-    fields, alphas, idx, rhos, nears = [], [], [], [], []
+    fields, alphas = [], []
     for k in range(len(colours)):
         chans = [jnp.moveaxis(colours[k], -1, 0) * alpha[k]]
         if masked:  # the footprint, at the visible surface's depth
@@ -318,21 +327,12 @@ def exact_defocus(rgb, depth, camera, *, window: float, blades=None, rotation=0.
         chans.append(alpha[k][None])
         fields.append(pad(jnp.concatenate(chans)))
         alphas.append(pad(alpha[k]))
-        # depths padded by their edge values keep every CoC finite; nothing is there anyway
-        zk = jnp.pad(depths[k], pad2, mode="edge")
-        ck = coc_unchecked(zk, camera).astype(dtype)
-        idx.append(jnp.where(inside, level_index(ck, p), float(len(p.levels) // 2)))
-        rhos.append(jnp.minimum(jnp.sqrt(ck * ck + R0 * R0), p.rho_g))
-        nears.append(ck > 0)
     n_src = len(fields)
     if loose:  # the unconfined reflection: scattered at its virtual depth, never occluded
-        zr = jnp.pad(reflection_depth, pad2, mode="edge")
-        cr = coc_unchecked(zr, camera).astype(dtype)
         fields.append(pad(jnp.moveaxis(reflection, -1, 0).astype(dtype)))
         alphas.append(pad(jnp.ones((h, w), dtype)))
-        idx.append(jnp.where(inside, level_index(cr, p), float(len(p.levels) // 2)))
-        rhos.append(jnp.minimum(jnp.sqrt(cr * cr + R0 * R0), p.rho_g))
-        nears.append(cr > 0)
+        where.append(placed(reflection_depth))
+    _, idx, rhos, nears = (list(x) for x in zip(*where))
     gweights = [_gather_weights(r, nr, p) for r, nr in zip(rhos, nears)]
 
     def slice_fields(level, crop: bool):
