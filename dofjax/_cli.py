@@ -3,6 +3,8 @@
     dofjax render SCENE.json [--focus D] [--aperture A] [--width W] [--height H] [--fov DEG]
                              [--eye X Y Z] [--target X Y Z] [--up X Y Z] [--spp N] [--layers K]
                              [--reference [--seed S]] -o OUT.exr [--png OUT.png] [--exposure EV]
+    dofjax defocus SHARP.exr|SCENE.json --focus D --aperture A -o OUT.exr [--png OUT.png]
+                   [--method sliced|exact|pyramid|lens] [--reference --spp N [--seed S]]
     dofjax info FILE.exr
     dofjax view SCENE.json|SHARP.exr|DATASET [--target FILE] [--port P] [--host H] [--open]
 
@@ -11,14 +13,17 @@ overrides one field of it. It writes RGB + Z (+ the mirror layer `reflection.*`,
 `reflection_depth.Z`, the mirrors' footprint `mirror.*` and peeled layers `layer<k>.*` when
 present, see `dofjax.write_rgbd`) with the
 camera and render parameters as `dofjax:<name>` metadata, and optionally an sRGB PNG preview.
-`info` prints an EXR's resolution, channels, depth and colour ranges and its dofjax metadata.
+`defocus` blurs a sharp RGB-D EXR (its camera from the file's metadata, focus and aperture from
+the flags) or renders a scene file and blurs it; `--reference` traces the scene through the lens
+instead (a target like a photograph). `info` prints an EXR's resolution, channels, depth and
+colour ranges and its dofjax metadata.
 `view` serves the browser viewer (`dofjax._viewer`, docs/viewer.md) until Ctrl-C.
 
 Errors a user can fix (ValueError, FileNotFoundError, OSError) are printed as
 `dofjax: error: <message>` on stderr with exit status 2, without a traceback; argparse usage errors
 also exit with status 2.
 
-Adding a subcommand (e.g. `defocus`): write `_configure_<name>(parser)` that adds its arguments and
+Adding a subcommand: write `_configure_<name>(parser)` that adds its arguments and
 `_run_<name>(args) -> int` that calls the library and prints or saves, then append
 `Subcommand("<name>", "<one-line help>", _configure_<name>, _run_<name>)` to `SUBCOMMANDS`. New
 options of an existing subcommand (e.g. `render --reference` for the lens-sampling reference) go in
@@ -238,6 +243,109 @@ def _to_numpy(tree):
 
 
 # ---------------------------------------------------------------------------------------------
+# dofjax defocus
+
+
+def _configure_defocus(p: argparse.ArgumentParser) -> None:
+    p.add_argument("input", help="a sharp RGB-D EXR with Z (e.g. from `dofjax render`), or a "
+                   "scene file (JSON) to render it from")
+    p.add_argument("-o", "--output", required=True, help="output OpenEXR file (.exr)")
+    p.add_argument("--png", help="also write an 8-bit sRGB preview PNG here")
+    p.add_argument("--exposure", type=float, default=0.0, help="PNG preview exposure, stops")
+    p.add_argument("--focus", type=float, metavar="D",
+                   help="focus distance, world units (default: the input's camera)")
+    p.add_argument("--aperture", type=float, metavar="A",
+                   help="aperture (lens) radius, world units (default: the input's camera)")
+    p.add_argument("--method", default="sliced", choices=("sliced", "exact", "pyramid", "lens"),
+                   help="defocus method (default sliced; docs/defocus.md)")
+    p.add_argument("--layers", type=int, metavar="K",
+                   help="scene files: render K depth-peeled layers for the defocus")
+    p.add_argument("--spp", type=int, default=1,
+                   help="scene files: samples per pixel (of the sharp render, or with "
+                   "--reference lens samples per pixel; default 1)")
+    ref = p.add_argument_group("lens-sampled target (scene files only)")
+    ref.add_argument("--reference", action="store_true",
+                     help="trace the scene through the lens (`dofjax.render_reference`, --spp "
+                     "samples per pixel) instead of the post-process: a target like a photograph")
+    ref.add_argument("--seed", type=int, default=0, help="lens-sample seed for --reference")
+
+
+def _camera_from_metadata(path: str, meta: dict, shape) -> dict:
+    """A sharp EXR's camera fields from its `dofjax:` metadata (as `dofjax render` writes it)."""
+    missing = [k for k in ("fov",) if k not in meta]
+    if missing:
+        raise ValueError(f"{path}: no {', '.join(missing)} in the file's dofjax metadata (write "
+                         f"it with `dofjax render`, or dofjax.write_rgbd(..., metadata=...))")
+    fields = {"width": shape[1], "height": shape[0], "fov": meta["fov"]}
+    for name in ("focus_distance", "aperture_radius", "eye", "target", "up"):
+        if name in meta:
+            fields[name] = meta[name]
+    return fields
+
+
+def _run_defocus(args: argparse.Namespace) -> int:
+    import dofjax
+
+    for flag, name, ext in (("-o", args.output, ".exr"), ("--png", args.png, ".png")):
+        if name is not None and not name.lower().endswith(ext):
+            raise ValueError(f"{flag}: {name}: the file name must end in {ext}")
+    if args.spp < 1:
+        raise ValueError(f"--spp: must be >= 1, got {args.spp}")
+    if args.layers is not None and args.layers < 1:
+        raise ValueError(f"--layers: must be >= 1, got {args.layers}")
+    scene_file = args.input.lower().endswith(".json")
+    if not scene_file and (args.reference or args.layers is not None or args.spp != 1):
+        flag = "--reference" if args.reference else "--layers" if args.layers else "--spp"
+        raise ValueError(f"{flag}: needs the scene file (JSON), not a sharp EXR: a lens-sampled "
+                         f"target traces the scene itself")
+    if args.reference and args.method != "sliced":
+        raise ValueError("--method: not used with --reference (the lens is sampled, not modelled)")
+    if scene_file:
+        args.scene = args.input
+        for flag in ("width", "height", "fov", "eye", "target", "up"):
+            setattr(args, flag, None)
+        camera = _camera_from_args(args)
+        scene = dofjax.load_scene(args.input)
+        if args.reference:
+            return _run_reference(args, scene, camera)
+        sharp = dofjax.render(scene, camera, spp=args.spp, layers=args.layers)
+        margin = 0
+        source = {"scene": args.input, "spp": args.spp, "layers": args.layers}
+    else:
+        sharp, meta = dofjax.read_rgbd(args.input)
+        margin = int(meta.get("margin", 0))
+        h, w = np.shape(sharp.depth)
+        fields = _camera_from_metadata(args.input, meta, (h - 2 * margin, w - 2 * margin))
+        for flag, name in (("focus", "focus_distance"), ("aperture", "aperture_radius")):
+            value = getattr(args, flag)
+            if value is not None:
+                fields[name] = value
+            elif name not in fields:
+                raise ValueError(f"{args.input}: no {name} in the file's metadata; pass --{flag}")
+        camera = dofjax.Camera(**fields)
+        source = {"sharp": args.input}
+    start = time.perf_counter()
+    image = np.asarray(dofjax.defocus(sharp, camera, method=args.method, margin=margin))
+    seconds = time.perf_counter() - start
+    metadata = {
+        "focus_distance": _plain(camera.focus_distance),
+        "aperture_radius": _plain(camera.aperture_radius),
+        "fov": _plain(camera.fov), "width": camera.width, "height": camera.height,
+        "eye": _plain(camera.eye), "target": _plain(camera.target), "up": _plain(camera.up),
+        "method": args.method, "role": "target", "generator": "dofjax defocus",
+        "version": dofjax.__version__,
+        **{k: v for k, v in source.items() if v is not None},
+    }
+    dofjax.write_exr(args.output, image, None, metadata)
+    if args.png:
+        dofjax.write_png(args.png, image, exposure=args.exposure)
+    print(f"wrote {args.output}{' and ' + args.png if args.png else ''}: {camera.width}x"
+          f"{camera.height}, method {args.method}, focus {float(camera.focus_distance):g}, "
+          f"aperture {float(camera.aperture_radius):g}, defocus {seconds:.2f} s (incl. compile)")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
 # dofjax info
 
 
@@ -363,6 +471,12 @@ SUBCOMMANDS: list[Subcommand] = [
         "ray cast a scene file to EXR (RGB + Z + metadata)",
         _configure_render,
         _run_render,
+    ),
+    Subcommand(
+        "defocus",
+        "blur a sharp RGB-D EXR (or a scene) as a thin lens focused at --focus would",
+        _configure_defocus,
+        _run_defocus,
     ),
     Subcommand(
         "info",

@@ -103,6 +103,43 @@ def test_render_then_info(scene_file, tmp_path, capsys):
     assert "dofjax:focus_distance = 2.5" in text and "dofjax:scene = " in text
 
 
+def test_render_defocus_recover_from_the_shell(scene_file, tmp_path, capsys):
+    # the documented flow: a sharp EXR, blurred by `dofjax defocus`, is what dofjax.defocus makes
+    sharp, target = tmp_path / "sharp.exr", tmp_path / "target.exr"
+    assert main(["render", str(scene_file), "-o", str(sharp), "--layers", "2"]) == 0
+    status = main(["defocus", str(sharp), "--focus", "2.5", "--aperture", "0.1", "-o",
+                   str(target), "--png", str(tmp_path / "t.png")])
+    printed = capsys.readouterr()
+    assert status == 0, printed.err
+    assert f"wrote {target}" in printed.out
+    assert "method sliced, focus 2.5, aperture 0.1" in printed.out
+    rgb, depth, meta = dofjax.read_exr(target)
+    assert depth is None and meta["role"] == "target" and meta["sharp"] == str(sharp)
+    assert (meta["focus_distance"], meta["aperture_radius"], meta["method"]) == (2.5, 0.1, "sliced")
+    rgbd, _ = dofjax.read_rgbd(sharp)  # with its mirror and peeled layers
+    camera = dofjax.Camera(**{**CAMERA, "focus_distance": 2.5, "aperture_radius": 0.1})
+    np.testing.assert_allclose(rgb, np.asarray(dofjax.defocus(rgbd, camera)), atol=1e-6)
+    assert np.abs(rgb - rgbd.rgb).max() > 0.05  # blurred, not the sharp image
+    # a scene file instead: rendered, then blurred (the camera's own focus and aperture)
+    scene_target = tmp_path / "scene_target.exr"
+    assert main(["defocus", str(scene_file), "-o", str(scene_target), "--method", "exact"]) == 0
+    meta = dofjax.read_exr(scene_target)[2]
+    assert (meta["focus_distance"], meta["method"]) == (4.0, "exact")
+    assert meta["scene"] == str(scene_file)
+    # a lens-sampled target needs the scene; from an EXR it is refused with the reason
+    assert main(["defocus", str(sharp), "--reference", "-o", str(tmp_path / "r.exr")]) == 2
+    assert "--reference: needs the scene file (JSON)" in capsys.readouterr().err
+    assert main(["defocus", str(scene_file), "--reference", "--spp", "4", "-o",
+                 str(tmp_path / "r.exr")]) == 0
+    assert dofjax.read_exr(tmp_path / "r.exr")[2]["reference"] == 1
+    # a sharp file without a camera: the missing field and what to do
+    bare = tmp_path / "bare.exr"
+    dofjax.write_exr(bare, rgbd.rgb, rgbd.depth)
+    assert main(["defocus", str(bare), "--focus", "2", "--aperture", "0.1", "-o",
+                 str(tmp_path / "x.exr")]) == 2
+    assert "bare.exr: no fov in the file's dofjax metadata" in capsys.readouterr().err
+
+
 def test_camera_flags_override_the_file(scene_file, scene_without_camera):
     parser = _cli.build_parser()
     args = parser.parse_args([
