@@ -11,6 +11,7 @@ remains is tracing). The library itself never changes JAX's configuration; the c
 from __future__ import annotations
 
 import os
+import sys
 import warnings
 
 ENV = "DOFJAX_JAX_CACHE"
@@ -64,11 +65,12 @@ def use_compilation_cache(directory: str | None = None) -> str | None:
 
 def use_in_script(prog: str, directory: str | None) -> str | None:
     """`use_compilation_cache` for a script: a directory that cannot be created ends it with a
-    one-line message naming `prog` (instead of a traceback)."""
+    one-line message naming `prog` on stderr (instead of a traceback) and exit status 2."""
     try:
         return use_compilation_cache(directory)
     except OSError as exc:
-        raise SystemExit(f"{prog}: {exc}") from None
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def add_argument(parser) -> None:

@@ -13,9 +13,12 @@ side: see `fit_focus`). A sharp EXR may also be S times the target's size, and c
 band beyond the target's frame (`--margin M` px, default the file's `margin` metadata, which
 data_gen writes; `--scene` renders the band with `--margin`). `--method lens` fits
 with the lens model (the sliced model searches, the lens model polishes; for photographs and
-lens-sampled targets). The initial guess is the file's camera (or --focus/--aperture). Prints
+lens-sampled targets). The fit starts from --focus/--aperture, or, without them, searches
+globally inside truth-free bounds from the sharp depth (never from a file's focus or aperture:
+a data_gen sharp file records the truth there); it prints which. Prints
 true (if the target's `dofjax:` metadata has it) vs recovered with standard errors, and writes
-PREFIX.json (the FitResult) and PREFIX.png (target | fitted | 4x |residual|).
+PREFIX.json (the FitResult) and PREFIX.png (target | fitted | 4x |residual|). Exit status 0,
+2 for bad input, 3 for a fit that is not converged or not identifiable (`fit/_errors.py`).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 
 import numpy as np
 
@@ -31,32 +35,53 @@ from dofjax import _compile_cache as compile_cache
 from dofjax._fit import LOSSES, SOLVERS
 from fit import _options as fit_options
 from fit._clipped import clipped_mask
-from fit._errors import user_errors
+from fit._errors import UNTRUSTED_FIT, user_errors
+from fit._search import centre, search_bounds
 from fit._table import format_table, result_rows
+from fit.sweep import reach
 
 
-def _camera(meta: dict, shape, fallback: dofjax.Camera | None, focus, aperture) -> dofjax.Camera:
+def _camera(meta: dict, shape, fallback: dofjax.Camera | None, focus: float,
+            aperture: float) -> dofjax.Camera:
+    """The target's camera: pose and fov from the sharp file's metadata (or the scene file's
+    camera), focus and aperture from the initial guess."""
     h, w = shape
+
     def get(key, default):
         return meta.get(key, default)
+
     base = fallback
     fov = get("fov", None if base is None else float(base.fov))
     if fov is None:
-        raise SystemExit("recover: no fov in the sharp file's metadata; pass --fov")
-    focus = focus if focus is not None else get(
-        "focus_distance", None if base is None else float(base.focus_distance))
-    aperture = aperture if aperture is not None else get(
-        "aperture_radius", None if base is None else float(base.aperture_radius))
-    for value, flag, name in ((focus, "--focus", "focus distance"),
-                              (aperture, "--aperture", "aperture radius")):
-        if value is None:
-            raise SystemExit(f"recover: no initial {name} (the sharp file's metadata has none); "
-                             f"pass {flag}")
+        raise ValueError("no fov in the sharp file's metadata; pass --fov")
     return dofjax.Camera(
         width=w, height=h, fov=fov, focus_distance=focus, aperture_radius=aperture,
         eye=get("eye", (0.0, 0.0, 0.0) if base is None else base.eye),
         target=get("target", (0.0, 0.0, 1.0) if base is None else base.target),
         up=get("up", (0.0, 1.0, 0.0) if base is None else base.up))
+
+
+def _start(a: argparse.Namespace, depth, fov: float, width: int) -> tuple[float, float, dict, str]:
+    """The initial guess and bounds: --focus/--aperture when given, else the middle of
+    truth-free bounds from the sharp depth, searched globally by the multi-start. Never a
+    file's focus or aperture (a data_gen sharp file records the truth there)."""
+    bounds = search_bounds(depth, fov, width, reach(None, a.window))
+    if a.focus_bounds:
+        bounds["focus_distance"] = tuple(a.focus_bounds)
+    if a.aperture_bounds:
+        bounds["aperture_radius"] = tuple(a.aperture_bounds)
+    d_mid, a_mid = centre(bounds)
+    focus = a.focus if a.focus is not None else d_mid
+    aperture = a.aperture if a.aperture is not None else a_mid
+    if a.focus is not None and a.aperture is not None:
+        how = f"--focus {a.focus:g} --aperture {a.aperture:g}"
+    else:
+        given = [f for f, v in (("--focus", a.focus), ("--aperture", a.aperture)) if v is not None]
+        how = ("global search (" + (", ".join(given) + " given; " if given else "") +
+               f"{a.starts} starts in 1/d over d {bounds['focus_distance'][0]:.4g}.."
+               f"{bounds['focus_distance'][1]:.4g}, A {bounds['aperture_radius'][0]:.3g}.."
+               f"{bounds['aperture_radius'][1]:.3g})")
+    return focus, aperture, bounds, how
 
 
 def main(argv=None) -> None:
@@ -105,10 +130,12 @@ def main(argv=None) -> None:
     if a.margin is not None and a.margin < 0:
         p.error(f"--margin must be >= 0, got {a.margin}")
     with user_errors("recover"):  # a missing or unreadable file, a bad value: named, no traceback
-        _run(a)
+        status = _run(a)
+    if status:
+        raise SystemExit(status)
 
 
-def _run(a: argparse.Namespace) -> None:
+def _run(a: argparse.Namespace) -> int:
     target, _, tmeta = dofjax.read_exr(a.target)
     if a.sharp:
         # the mirror layer and peeled layers, when the file has them, enter the fit
@@ -116,28 +143,27 @@ def _run(a: argparse.Namespace) -> None:
         meta = {**smeta}
         if a.fov is not None:
             meta["fov"] = a.fov
-        guess = dict(focus=a.focus, aperture=a.aperture)
-        # The target's truth must not leak into the initial guess: use the sharp file's camera.
+        if "fov" not in meta:
+            raise ValueError(f"{a.sharp}: no fov in the file's metadata; pass --fov")
+        focus, aperture, bounds, how = _start(a, np.asarray(sharp.depth), meta["fov"],
+                                              target.shape[1])
         # the target's grid (the sharp file may be an integer multiple of it: supersampled)
-        camera = _camera(meta, target.shape[:2], None, **guess) if "fov" in meta else None
-        if camera is None:
-            raise SystemExit("recover: no fov in the sharp file's metadata; pass --fov")
+        camera = _camera(meta, target.shape[:2], None, focus, aperture)
         margin = int(meta.get("margin", 0)) if a.margin is None else a.margin
     else:
         scene = dofjax.load_scene(a.scene)
         cam0 = dofjax.load_camera(a.scene)
         if cam0 is None:
-            raise SystemExit(f"recover: {a.scene} has no camera section")
-        camera = _camera({}, target.shape[:2], cam0, a.focus, a.aperture)
-        # with its mirror layer, if the scene has mirrors
+            raise ValueError(f"{a.scene} has no camera section")
         margin = a.margin or 0
-        sharp = dofjax.render(scene, camera.padded(margin).scaled(a.supersample),
+        # with its mirror layer, if the scene has mirrors (focus and aperture do not matter)
+        base = _camera({}, target.shape[:2], cam0, 1.0, 0.0)
+        sharp = dofjax.render(scene, base.padded(margin).scaled(a.supersample),
                               layers=a.layers)
-    bounds = {}
-    if a.focus_bounds:
-        bounds["focus_distance"] = tuple(a.focus_bounds)
-    if a.aperture_bounds:
-        bounds["aperture_radius"] = tuple(a.aperture_bounds)
+        focus, aperture, bounds, how = _start(a, np.asarray(sharp.depth), float(cam0.fov),
+                                              target.shape[1])
+        camera = base.replace(focus_distance=focus, aperture_radius=aperture)
+    print(f"initial guess: d {focus:.4g}, A {aperture:.4g} from {how}")
     options = a.defocus_options
     # bad input (shapes, NaN, bounds, options) raises ValueError before any solver runs
     mask = clipped_mask(target, a.clipped_at, tmeta.get("noise"))
@@ -149,7 +175,7 @@ def _run(a: argparse.Namespace) -> None:
         at = a.clipped_at if a.clipped_at is not None else "its noise model's maximum"
         print(f"left out {int(mask.size - mask.sum())} of {mask.size} target pixels clipped at "
               f"{at}")
-    result = dofjax.fit_focus(target, sharp, camera, bounds=bounds or None, solver=a.solver,
+    result = dofjax.fit_focus(target, sharp, camera, bounds=bounds, solver=a.solver,
                               loss=a.loss, starts=a.starts, window=a.window,
                               defocus_options=options, mask=mask, margin=margin)
     truth = {k: tmeta.get(k) for k in ("focus_distance", "aperture_radius")}
@@ -169,6 +195,12 @@ def _run(a: argparse.Namespace) -> None:
                             4.0 * np.abs(np.asarray(fitted) - np.asarray(target))], axis=1)
     dofjax.write_png(prefix + ".png", strip)
     print(f"wrote {prefix}.json and {prefix}.png (target | fitted | 4x |residual|)")
+    if not (bool(result.converged) and bool(result.identifiable)):
+        print("recover: warning: the fit is not trustworthy (" +
+              ("not converged" if not bool(result.converged) else "not identifiable") +
+              f"): exit status {UNTRUSTED_FIT}", file=sys.stderr)
+        return UNTRUSTED_FIT
+    return 0
 
 
 if __name__ == "__main__":

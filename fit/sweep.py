@@ -21,6 +21,7 @@ import argparse
 import json
 import math
 import os
+import sys
 import time
 from collections import defaultdict
 
@@ -33,6 +34,7 @@ from dofjax import _compile_cache as compile_cache
 from . import _options as fit_options
 from ._clipped import unclipped
 from ._errors import user_errors
+from ._search import random_start, search_bounds
 from ._table import format_table
 
 
@@ -61,32 +63,15 @@ def _sigma(noise: dict) -> float:
 
 def guess_and_bounds(rng: np.random.Generator, depth: np.ndarray, fov: float,
                      coc_reach: float = 32.0) -> tuple[float, float, dict]:
-    """A random initial guess and fit bounds that do not use the truth.
-
-    Bounds: d in (z_min / 2, 4 z_max); A up to the aperture whose largest |CoC| over the scene's
-    depths, for any focus inside the d bounds, is `coc_reach` px, and down to 1/1000 of that.
-    Guess: u = 1/d uniform and A log-uniform inside the bounds.
-
-    Args:
-        rng: numpy generator for the guess; depth: (H, W) z-depth, world units (+inf background);
-        fov: horizontal field of view, degrees; coc_reach: px.
+    """A random initial guess (u = 1/d uniform, A log-uniform) inside truth-free bounds
+    (`fit._search.search_bounds` at the depth map's width).
 
     Returns:
         (focus_distance guess, aperture_radius guess, bounds dict for `dofjax.fit_focus`).
     """
-    z = depth[np.isfinite(depth)]
-    w = depth.shape[1]
-    d_lo, d_hi = 0.5 * float(z.min()), 4.0 * float(z.max())
-    u_lo, u_hi = 1.0 / d_hi, 1.0 / d_lo
-    k = w / (2.0 * math.tan(math.radians(float(fov)) / 2.0))
-    du = max(abs(u_hi - 1.0 / z.max()), abs(u_lo - 1.0 / z.min()), abs(u_hi - 1.0 / z.min()),
-             abs(u_lo - 1.0 / z.max()))
-    a_hi = coc_reach / (k * du)
-    a_lo = a_hi / 1000.0
-    u0 = rng.uniform(u_lo, u_hi)
-    a0 = math.exp(rng.uniform(math.log(a_lo), math.log(a_hi)))
-    bounds = {"focus_distance": (d_lo, d_hi), "aperture_radius": (a_lo, a_hi)}
-    return 1.0 / u0, a0, bounds
+    bounds = search_bounds(depth, fov, depth.shape[1], coc_reach)
+    d0, a0 = random_start(rng, bounds)
+    return d0, a0, bounds
 
 
 def true_camera(truth: dict, width: int, height: int) -> dofjax.Camera:
@@ -239,10 +224,16 @@ def summarise(rows: list[dict]) -> str:
     return format_table(table, header=header)
 
 
-def plots(rows: list[dict], out: str) -> None:
+def plots(rows: list[dict], out: str) -> list[str]:
     """sweep_noise.png: |rel err| vs Gaussian sigma with each sample's CRB and the median CRB
-    line; sweep_aperture.png: |rel err| vs true aperture, by kind."""
-    import matplotlib
+    line; sweep_aperture.png: |rel err| vs true aperture, by kind. Returns the files written:
+    none, with a note on stderr, when matplotlib (the `bench` extra) is not installed."""
+    try:
+        import matplotlib
+    except ImportError:
+        print("sweep: no plots (matplotlib is not installed: pip install 'dofjax[bench]')",
+              file=sys.stderr)
+        return []
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -296,6 +287,7 @@ def plots(rows: list[dict], out: str) -> None:
     fig.tight_layout()
     fig.savefig(os.path.join(out, "sweep_aperture.png"), dpi=100)
     plt.close(fig)
+    return ["sweep_noise.png", "sweep_aperture.png"]
 
 
 def read_manifest(path: str) -> list[dict]:
@@ -360,8 +352,8 @@ def _run(a: argparse.Namespace) -> None:
                 f"s^2 (J^T J)^-1; CRB = Cramer-Rao bound at the truth (Gaussian noise only).\n\n"
                 f"{table}\n")
     print(table)
-    plots(rows, out)
-    print(f"wrote {out}/sweep.jsonl, sweep.md, sweep_noise.png, sweep_aperture.png")
+    written = ["sweep.jsonl", "sweep.md"] + plots(rows, out)
+    print(f"wrote {out}/{', '.join(written)}")
 
 
 if __name__ == "__main__":

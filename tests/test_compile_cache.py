@@ -70,10 +70,12 @@ def test_cli_reports_an_uncreatable_cache_directory(tmp_path, restore_cache_dir,
     assert "compilation cache" in capsys.readouterr().err
 
 
-def test_scripts_end_with_a_message_naming_themselves(tmp_path, restore_cache_dir):
+def test_scripts_end_with_a_message_naming_themselves(tmp_path, restore_cache_dir, capsys):
     from fit import demo
 
     blocker = tmp_path / "file"
     blocker.write_text("not a directory")
-    with pytest.raises(SystemExit, match="^demo: JAX compilation cache: cannot create"):
+    with pytest.raises(SystemExit) as info:
         demo.main(["--jax-cache", str(blocker / "cache")])
+    assert info.value.code == 2
+    assert capsys.readouterr().err.startswith("demo: error: JAX compilation cache: cannot create")

@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 
 import numpy as np
 import pytest
@@ -16,6 +17,17 @@ def _camera(width, height, focus, aperture):
     base = dofjax.load_camera(SCENE)
     return dofjax.Camera(width=width, height=height, fov=base.fov, focus_distance=focus,
                          aperture_radius=aperture, eye=base.eye, target=base.target, up=base.up)
+
+
+def _fails(capsys, main, argv, pattern):
+    """`main(argv)` ends with exit status 2 (bad input) and a stderr line matching `pattern`;
+    returns what it printed on stdout."""
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    out, err = capsys.readouterr()
+    assert info.value.code == 2, err
+    assert re.search(pattern, err, re.MULTILINE), err
+    return out
 
 
 @pytest.mark.slow
@@ -58,77 +70,94 @@ def test_recover_rejects_options_that_do_not_apply(tmp_path, capsys):
             recover.main([path] + argv)
         assert msg in capsys.readouterr().err
     # a value only the library can judge: its named error, not a silent default
-    with pytest.raises(SystemExit, match="samples must be a positive int, got 0"):
-        recover.main([path, "--scene", SCENE, "--method", "lens", "--samples", "0"])
-    with pytest.raises(SystemExit, match=r"subapertures must be an int in \[1, 16\], got 0"):
-        recover.main([path, "--scene", SCENE, "--subapertures", "0"])
+    _fails(capsys, recover.main, [path, "--scene", SCENE, "--method", "lens", "--samples", "0"],
+           "samples must be a positive int, got 0")
+    _fails(capsys, recover.main, [path, "--scene", SCENE, "--subapertures", "0"],
+           r"subapertures must be an int in \[1, 16\], got 0")
 
 
-def test_recover_names_a_target_clipped_everywhere(tmp_path):
+def test_recover_names_a_target_clipped_everywhere(tmp_path, capsys):
     # (not fit_focus's "mask: selects no pixels", which names an argument the user did not pass)
     sharp = dofjax.render(dofjax.load_scene(SCENE), _camera(8, 6, 4.0, 0.05))
-    dofjax.write_rgbd(str(tmp_path / "sharp.exr"), sharp, metadata={"fov": 40.0})
+    dofjax.write_rgbd(str(tmp_path / "sharp.exr"), sharp)
     target = str(tmp_path / "target.exr")
     dofjax.write_exr(target, np.full((6, 8, 3), 0.7, np.float32))
     argv = [target, "--sharp", str(tmp_path / "sharp.exr"), "--clipped-at", "0.5"]
-    # and a sharp file without a camera guess in its metadata: the flag to pass, named
-    with pytest.raises(SystemExit, match=r"^recover: no initial focus distance \(the sharp "
-                                         r"file's metadata has none\); pass --focus$"):
-        recover.main(argv)
-    with pytest.raises(SystemExit, match=r"^recover: no initial aperture radius .*--aperture$"):
-        recover.main(argv + ["--focus", "3"])
-    with pytest.raises(SystemExit, match=r"^recover: error: .*target.exr: every pixel has a "
-                                         r"channel clipped at 0.5: nothing to fit"):
-        recover.main(argv + ["--focus", "3", "--aperture", "0.05"])
+    # a sharp file without the field of view in its metadata: the flag to pass, named
+    _fails(capsys, recover.main, argv, r"^recover: error: .*sharp\.exr: no fov in the file's "
+           r"metadata; pass --fov$")
+    _fails(capsys, recover.main, argv + ["--fov", "40"], r"^recover: error: .*target.exr: every "
+           r"pixel has a channel clipped at 0.5: nothing to fit")
 
 
-def test_scripts_name_a_missing_or_unreadable_file(tmp_path):
-    # one line naming the file (SystemExit's message), not a traceback from the reader
+def test_recover_never_starts_from_the_files_focus_and_aperture(tmp_path, capsys):
+    # a data_gen sharp file records the true camera: the guess must not come from it
+    true = _camera(16, 12, 4.0, 0.05)
+    sharp = dofjax.render(dofjax.load_scene(SCENE), true)
+    meta = {"fov": float(true.fov), "focus_distance": 4.0, "aperture_radius": 0.05}
+    dofjax.write_rgbd(str(tmp_path / "sharp.exr"), sharp, metadata=meta)
+    target = str(tmp_path / "target.exr")
+    dofjax.write_exr(target, np.zeros((12, 16, 3), np.float32), metadata=meta)
+    argv = [target, "--sharp", str(tmp_path / "sharp.exr"), "--clipped-at", "-1"]
+    z = np.asarray(sharp.depth)
+    z = z[np.isfinite(z)]
+    d_lo, d_hi = 0.5 * z.min(), 4.0 * z.max()
+    d_mid = 2.0 / (1.0 / d_lo + 1.0 / d_hi)
+    # (every pixel "clipped" at -1 ends the run after the guess is printed, before any fit)
+    out = _fails(capsys, recover.main, argv, "nothing to fit")
+    assert re.search(rf"^initial guess: d {d_mid:.4g}, A \S+ from global search \(8 starts",
+                     out, re.MULTILINE), out
+    out = _fails(capsys, recover.main, argv + ["--focus", "9", "--aperture", "0.02"],
+                 "nothing to fit")
+    assert "initial guess: d 9, A 0.02 from --focus 9 --aperture 0.02" in out
+
+
+def test_scripts_name_a_missing_or_unreadable_file(tmp_path, capsys):
+    # one line naming the file on stderr, not a traceback from the reader
     from fit import sweep
 
     target = str(tmp_path / "t.exr")
     dofjax.write_exr(target, np.zeros((4, 4, 3), np.float32))
     missing = str(tmp_path / "missing.exr")
-    with pytest.raises(SystemExit, match=r"^recover: error: .*missing\.exr: no such file"):
-        recover.main([missing, "--sharp", target])
-    with pytest.raises(SystemExit, match=r"^recover: error: .*missing\.exr: no such file"):
-        recover.main([target, "--sharp", missing])
-    with pytest.raises(SystemExit, match=r"^recover: error: .*nope\.json: cannot read scene"):
-        recover.main([target, "--scene", str(tmp_path / "nope.json")])
+    _fails(capsys, recover.main, [missing, "--sharp", target],
+           r"^recover: error: .*missing\.exr: no such file")
+    _fails(capsys, recover.main, [target, "--sharp", missing],
+           r"^recover: error: .*missing\.exr: no such file")
+    _fails(capsys, recover.main, [target, "--scene", str(tmp_path / "nope.json")],
+           r"^recover: error: .*nope\.json: cannot read scene")
     text = tmp_path / "notes.txt"
     text.write_text("not an image\n")
-    with pytest.raises(SystemExit, match=r"^recover: error: .*notes\.txt: not a readable image"):
-        recover.main([str(text), "--sharp", target])
-    with pytest.raises(SystemExit, match=r"^sweep: error: .*No such file"):
-        sweep.main([str(tmp_path / "manifest.jsonl")])
-    with pytest.raises(SystemExit, match=r"notes\.txt, line 1: not a data_gen manifest line"):
-        sweep.main([str(text), "--out", str(tmp_path)])
+    _fails(capsys, recover.main, [str(text), "--sharp", target],
+           r"^recover: error: .*notes\.txt: not a readable image")
+    _fails(capsys, sweep.main, [str(tmp_path / "manifest.jsonl")],
+           r"^sweep: error: .*No such file")
+    _fails(capsys, sweep.main, [str(text), "--out", str(tmp_path)],
+           r"notes\.txt, line 1: not a data_gen manifest line")
     record = tmp_path / "record.jsonl"
     record.write_text('{"files": {}}\n')
-    with pytest.raises(SystemExit, match=r"line 1: not a data_gen manifest record \(no index, "
-                       r"truth, kind, noise\)"):
-        sweep.main([str(record), "--out", str(tmp_path)])
+    _fails(capsys, sweep.main, [str(record), "--out", str(tmp_path)],
+           r"line 1: not a data_gen manifest record \(no index, truth, kind, noise\)")
     # a sample whose files are gone: named with its index, the rest of the sweep not run
     gone = tmp_path / "gone.jsonl"
     gone.write_text(json.dumps({"index": 7, "kind": "planes", "noise": {"model": "none"},
                                 "truth": {"fov": 40.0},
                                 "files": {"sharp": "x.sharp.exr", "target": "x.target.exr"}})
                     + "\n")
-    with pytest.raises(SystemExit, match=r"^sweep: error: sample 7 \(planes; 0 of 1 fitted, "
-                                         r"in .*sweep\.jsonl\): .*x\.sharp\.exr: no such file"):
-        sweep.main([str(gone), "--out", str(tmp_path)])
+    _fails(capsys, sweep.main, [str(gone), "--out", str(tmp_path)],
+           r"^sweep: error: sample 7 \(planes; 0 of 1 fitted, in .*sweep\.jsonl\): "
+           r".*x\.sharp\.exr: no such file")
     empty = tmp_path / "empty.jsonl"
     empty.write_text("\n")
-    with pytest.raises(SystemExit, match="empty manifest"):
-        sweep.main([str(empty), "--out", str(tmp_path)])
+    _fails(capsys, sweep.main, [str(empty), "--out", str(tmp_path)],
+           "empty manifest")
 
 
 def test_demo_and_data_gen_name_bad_paths(tmp_path, capsys):
     from data_gen.__main__ import main as data_gen_main
     from fit import demo
 
-    with pytest.raises(SystemExit, match=r"^demo: error: .*nope\.json: cannot read scene file"):
-        demo.main(["--scene", str(tmp_path / "nope.json")])
+    _fails(capsys, demo.main, ["--scene", str(tmp_path / "nope.json")],
+           r"^demo: error: .*nope\.json: cannot read scene file")
     a_file = tmp_path / "a_file"
     a_file.write_text("")
     assert data_gen_main(["--out", str(a_file), "--count", "1", "--seed", "0",
