@@ -1,7 +1,8 @@
 """Scene kinds: random scenes with known geometry, built as JSON-able scene dicts.
 
 Every kind is a function ``(rng, fov_deg, aspect, scene_cfg) -> KindScene``. The camera sits at the
-origin looking along +z with up +y (DESIGN.md section 1), so world z *is* the z-depth of a
+origin looking along +z with up +y (docs/conventions.md, section 1), so world z *is* the z-depth of
+a
 fronto-parallel surface. The scene is returned as a dict in dofjax's scene-file format
 (`dofjax.scene_from_dict`), so the saved JSON is the ground truth and re-renders to the saved
 sharp image.
@@ -139,7 +140,8 @@ class _Builder:
     def rect(self, cx: float, cy: float, z: float, w: float, h: float, material: int) -> None:
         """A fronto-parallel rectangle centred at (cx, cy, z), its texture upright in the image.
 
-        The camera shows world +x on the image's left (DESIGN.md section 1), so edge_u points
+        The camera shows world +x on the image's left (docs/conventions.md, section 1), so edge_u
+        points
         along -x for the texture's u to run left to right in the image.
         """
         self.quad([cx + w / 2, cy - h / 2, z], [-w, 0.0, 0.0], [0.0, h, 0.0], material)

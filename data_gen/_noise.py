@@ -1,6 +1,7 @@
 """Sensor noise models for the generated targets, in numpy, seeded per sample.
 
-All images are linear float (DESIGN.md section 2). Every model takes a `numpy.random.Generator`
+All images are linear float (docs/conventions.md, section 2). Every model takes a
+`numpy.random.Generator`
 that the caller derives from (seed, index) (see `sample_rng`), so a sample's noise does not depend
 on the order in which samples are generated or on which worker generates them.
 

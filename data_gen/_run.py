@@ -17,13 +17,14 @@ Layout of an output directory::
     samples/0000/000000.json           the sample's record (= its manifest line); written last
 
 Every file is written to a temporary name and renamed into place, and the record last, so a sample
-is finished exactly when its record exists and its files have the recorded sizes. A re-run skips
-finished samples and redoes anything else (a half-written sample is overwritten), then rebuilds
-the manifest from the records, which also repairs a damaged or truncated manifest.
+is finished exactly when its record exists and its files have the recorded sizes and sha256. A
+re-run skips finished samples and redoes anything else (a half-written sample is overwritten),
+then rebuilds the manifest from the records, which also repairs a damaged or truncated manifest.
 
 A record (manifest line) holds: ``index``, ``seed``, ``kind``, ``identifiable`` (False for a
 single depth: focus in front of and behind it blur alike), ``method`` ("defocus" or "reference"),
-``files`` (paths relative to the output directory), ``bytes`` (file sizes, checked on resume),
+``files`` (paths relative to the output directory), ``bytes`` and ``sha256`` (file sizes and
+digests, checked on resume),
 ``noise`` (model and parameters as applied) and ``truth``: ``focus_distance``,
 ``aperture_radius`` (world units), ``fov`` (horizontal, degrees), ``width``, ``height``, ``eye``,
 ``target``, ``up``, ``camera_model``, ``depth_min`` / ``depth_max`` (visible z-depth span, mirror
@@ -42,6 +43,7 @@ be reproduced from the record: ``apply_noise(clean, record["noise"], sample_rng(
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -136,7 +138,7 @@ def draw_focus_aperture(cfg: Mapping, rng: np.random.Generator, lens: Mapping,
     Aperture: log-uniform in ``aperture_radius`` (photographic: the f-number log-uniform in
     ``f_number``, A = f / (2N), which is the same as A log-uniform between f / (2 N_max) and
     f / (2 N_min)). The blur this gives is the largest |c| = A k |1/z - 1/d| over the `blurred`
-    depths (DESIGN.md section 1); the aperture range is narrowed so that it lies in
+    depths (docs/conventions.md, section 1); the aperture range is narrowed so that it lies in
     [``min_coc_px``, ``max_coc_px``]: otherwise most draws would be invisibly small or larger
     than a defocus window. Where the two disagree, ``max_coc_px`` wins over the configured
     aperture range, and the configured range over ``min_coc_px``.
@@ -396,6 +398,7 @@ def generate_sample(out_dir: str, index: int, seed: int, cfg: Mapping,
         "method": s["method"],
         "files": {role: files[role] for role in FILE_ROLES},
         "bytes": {role: os.path.getsize(path[role]) for role in FILE_ROLES},
+        "sha256": {role: _sha256(path[role]) for role in FILE_ROLES},
         "truth": s["truth"],
         "noise": s["noise"],
     }
@@ -404,8 +407,17 @@ def generate_sample(out_dir: str, index: int, seed: int, cfg: Mapping,
     return record
 
 
+def _sha256(path: str) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 def finished_record(out_dir: str, index: int) -> dict | None:
-    """The record of sample `index` if it is complete on disk, else None."""
+    """The record of sample `index` if it is complete on disk (every file of its recorded size
+    and sha256), else None."""
     files = sample_files(index)
     try:
         with open(os.path.join(out_dir, files["record"])) as f:
@@ -416,7 +428,9 @@ def finished_record(out_dir: str, index: int) -> dict | None:
         return None
     try:
         for role in FILE_ROLES:
-            if os.path.getsize(os.path.join(out_dir, files[role])) != record["bytes"][role]:
+            file = os.path.join(out_dir, files[role])
+            if (os.path.getsize(file) != record["bytes"][role]
+                    or _sha256(file) != record["sha256"][role]):
                 return None
     except (OSError, KeyError, TypeError):
         return None
@@ -563,7 +577,7 @@ def run(out_dir: str, count: int, seed: int, cfg: Mapping, *, workers: int = 1,
         raise ValueError(f"seed: must be an integer >= 0, got {seed!r}")
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers: must be an integer >= 1, got {workers!r}")
-    from tqdm.auto import tqdm
+    from dofjax._progress import progress_bar
 
     cfg = validate_config(json.loads(_json_dumps(cfg)))
     start = time.perf_counter()
@@ -582,8 +596,8 @@ def run(out_dir: str, count: int, seed: int, cfg: Mapping, *, workers: int = 1,
         else:
             records[i] = rec
     skipped = len(records)
-    bar = tqdm(total=count, initial=skipped, unit="sample", desc="data_gen", disable=not progress,
-               dynamic_ncols=True)
+    bar = progress_bar(total=count, initial=skipped, unit="sample", desc="data_gen",
+                       disable=not progress)
     try:
         if workers == 1 or len(todo) <= 1:
             for i in todo:

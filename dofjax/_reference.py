@@ -1,4 +1,5 @@
-"""The lens-sampling reference: distributed ray tracing through a thin lens (DESIGN.md section 4).
+"""The lens-sampling reference: distributed ray tracing through a thin lens (docs/conventions.md,
+section 4).
 
 Per pixel, `spp` samples, each a position inside the pixel and a point on the aperture; the ray
 leaves the lens point and passes through the point where the pinhole ray of that pixel position
@@ -135,7 +136,8 @@ def _accumulate(
         # the pixel positions `render` uses at this spp (same cells, jitter and key)
         pix = pixel_positions(index, spp, (h, w), dtype, nx=nx, sampler=position_sampler)
         # Directions with unit forward component through the pixel positions: the focus-plane point
-        # of a sample is eye + d * dirs (DESIGN.md section 1: the focal surface is the plane z_cam =
+        # of a sample is eye + d * dirs (docs/conventions.md, section 1: the focal surface is the
+        # plane z_cam =
         # d).
         dirs = camera.pixel_directions(pix, per_pixel=True)  # (chunk, h, w, 3)
         u = unit_square_samples(lens_key, index, pixel_seed, spp, sampler, dtype=dtype, nx=nx)
@@ -167,7 +169,8 @@ def render_reference(
     sampler: str = "stratified",
     progress: bool | Callable[[int, int], None] | None = None,
 ) -> Image:
-    """The thin-lens image by distributed ray tracing, the ground truth for `defocus` (DESIGN.md 4).
+    """The thin-lens image by distributed ray tracing, the ground truth for `defocus`
+    (docs/conventions.md, section 4).
 
     Each pixel averages `spp` rays. Sample s uses the pixel position `render` uses for its s-th
     supersample (box filter) and a uniform point on the aperture (stratified or i.i.d.; concentric
@@ -222,9 +225,9 @@ def render_reference(
     group = max(1, n_chunks // 100)
     bar = None
     if progress is True:
-        from tqdm.auto import tqdm
+        from ._progress import progress_bar
 
-        bar = tqdm(total=spp, unit="spp", desc="reference")
+        bar = progress_bar(total=spp, unit="spp", desc="reference")
     total = jnp.zeros((camera.height, camera.width, 3), dtype)
     done = 0
     try:

@@ -24,6 +24,7 @@ SMALL = {
     "kinds": {"single_plane": 1.0, "planes": 1.0},
     "scene": {"texture_size": 32},
     "camera": {"max_coc_px": 3.0},
+    "target": {"method": "defocus"},  # the model's own targets: exact self-consistency
     "noise": [
         {"model": "none", "weight": 1.0},
         {"model": "gaussian", "weight": 1.0, "sigma": [0.01, 0.02]},
@@ -70,6 +71,7 @@ def dataset(tmp_path_factory, small_cfg):
 def test_default_config_validates():
     cfg = load_config()
     assert cfg["size"] == [256, 256]
+    assert cfg["target"]["method"] == "reference"  # lens-sampled, as a photograph
     assert set(cfg["kinds"]) == set(data_gen.KINDS)
 
 
@@ -405,10 +407,18 @@ def test_resume_after_interrupted_run(dataset, small_cfg, tmp_path):
         f.writelines(lines[:-1])
     with open(os.path.join(work, sample_files(3)["target"] + ".tmp123.exr"), "w") as f:
         f.write("junk")
+    # sample 0's sharp file has one byte flipped (same size): its sha256 tells
+    sharp0 = os.path.join(work, sample_files(0)["sharp"])
+    with open(sharp0, "r+b") as f:
+        f.seek(os.path.getsize(sharp0) // 2)
+        byte = f.read(1)
+        f.seek(-1, os.SEEK_CUR)
+        f.write(bytes([byte[0] ^ 0xFF]))
     assert finished_record(work, 1) is None and finished_record(work, 2) is None
-    assert finished_record(work, 0) is not None
+    assert finished_record(work, 0) is None
+    assert finished_record(work, 3) is not None
     summary = run(work, COUNT, SEED, small_cfg, progress=False)
-    assert summary.skipped == COUNT - 2 and summary.generated == 2
+    assert summary.skipped == COUNT - 3 and summary.generated == 3
     assert _digest(work) == want
 
 

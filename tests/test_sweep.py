@@ -16,6 +16,7 @@ CONFIG = {
     "kinds": {"occluders": 1.0},
     "scene": {"texture_size": 32},
     "camera": {"max_coc_px": 6.0},
+    "target": {"method": "defocus"},
     "noise": [{"model": "none", "weight": 1.0}],
 }
 
