@@ -1,4 +1,5 @@
-"""Images on disk: OpenEXR data and sRGB PNG previews through OpenImageIO (DESIGN.md section 2).
+"""Images on disk: OpenEXR data and sRGB PNG previews through OpenImageIO (docs/conventions.md,
+section 2).
 
 EXR layout written by `write_exr`:
 - channels `R, G, B` (linear colour), optional `A` (coverage in [0, 1]) and `Z` (z-depth, world
@@ -294,6 +295,17 @@ def _read_all(path: str) -> tuple[str, Any, np.ndarray]:
                 f"from the display window ({spec.full_x}, {spec.full_y}, "
                 f"{spec.full_width}x{spec.full_height}); crop or pad the image first"
             )
+        if fmt == "openexr":
+            formats = list(spec.channelformats) or [spec.format] * spec.nchannels
+            floats = (oiio.HALF, oiio.FLOAT, oiio.DOUBLE)
+            ints = [f"{n} ({f})" for n, f in zip(spec.channelnames, formats)
+                    if f.basetype not in floats]
+            if ints:
+                raise ValueError(
+                    f"{path}: channel(s) {', '.join(ints)} hold integers, not linear "
+                    f"floating-point values (reading them would rescale them by the type's "
+                    f"maximum); write the "
+                    f"image with half or float channels")
         pixels = inp.read_image(oiio.FLOAT)
         if pixels is None:
             reason = (inp.geterror() or oiio.geterror()).strip() or "truncated or corrupt file"

@@ -574,3 +574,21 @@ def test_metadata_names_that_differ_only_in_case_are_an_error(tmp_path):
         dofjax.write_exr(tmp_path / "h.exr", np.zeros((1, 1, 3), np.float32),
                          metadata={"C": 1, "c": 2})
     assert not (tmp_path / "h.exr").exists()
+
+
+@pytest.mark.parametrize("basetype", [oiio.UINT, oiio.HALF])
+def test_integer_exr_channels_are_refused_not_rescaled(tmp_path, basetype):
+    # OpenImageIO reads a uint32 channel as value / (2^32 - 1): 7 would come back as ~1.6e-9
+    path = str(tmp_path / "u.exr")
+    out = oiio.ImageOutput.create(path)
+    out.open(path, oiio.ImageSpec(4, 3, 3, basetype))
+    values = np.full((3, 4, 3), 7, np.uint32 if basetype == oiio.UINT else np.float16)
+    assert out.write_image(values)
+    out.close()
+    if basetype == oiio.UINT:
+        with pytest.raises(ValueError, match=r"u\.exr: channel\(s\) R \(uint\), G \(uint\), "
+                                             r"B \(uint\) hold integers"):
+            dofjax.read_exr(path)
+    else:
+        rgb, _, _ = dofjax.read_exr(path)
+        np.testing.assert_array_equal(rgb, 7.0)
