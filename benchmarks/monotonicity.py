@@ -3,7 +3,8 @@
     python benchmarks/monotonicity.py [--size 96] [--steps 637] [--max-coc 15.9]
 
 A white-noise image (seed 0) at one depth, blurred at a fine sweep of |c| (0.05 px up to
---max-coc) by: the DESIGN.md soft disc of radius sqrt(c^2 + R0^2) applied exactly (one scipy
+--max-coc) by: the docs/conventions.md soft disc of radius sqrt(c^2 + R0^2) applied exactly (one
+scipy
 convolution, "exact"); the hard disc integrated over each pixel ("area", a thin lens seen by a
 box-filtered pixel, 24 x 24 sub-samples per tap); `dofjax.defocus` with method "sliced" and
 "pyramid" (window 16). The measure is tests/test_defocus_properties.py's: the sum of squared

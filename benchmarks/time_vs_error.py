@@ -1,5 +1,5 @@
 """Run time versus error: every defocus method and option, the seed's algorithm and lens
-sampling, measured against a high-spp lens-sampling ground truth (DESIGN.md section 4).
+sampling, measured against a high-spp lens-sampling ground truth (docs/conventions.md, section 4).
 
     python benchmarks/time_vs_error.py                # defocus_regions.py's 4 scenes, 256x256
     python benchmarks/time_vs_error.py --suite small  # SETTINGS' 5 scenes x 2 settings, 64x64

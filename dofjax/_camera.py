@@ -1,4 +1,4 @@
-"""The thin-lens camera and its circle of confusion (DESIGN.md section 1).
+"""The thin-lens camera and its circle of confusion (docs/conventions.md, section 1).
 
 Conventions, as Mitsuba 3 and pbrt-v4:
 - look-at pose in a right-handed world: forward = optical axis (camera +z), right = forward x up,
@@ -316,7 +316,8 @@ class Camera(eqx.Module):
 
 
 def coc_radius(depth: ArrayLike, camera: Camera) -> Array:
-    """Signed circle-of-confusion radius in pixels, `c(z) = A k (1/z - 1/d)` (DESIGN.md section 1).
+    """Signed circle-of-confusion radius in pixels, `c(z) = A k (1/z - 1/d)` (docs/conventions.md,
+    section 1).
 
     Args:
         depth: z-depth (distance along the optical axis), world units, in (0, +inf].

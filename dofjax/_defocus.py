@@ -1,6 +1,7 @@
 """Depth-of-field from sharp RGB-D: the differentiable, occlusion-aware soft-disc defocus.
 
-DESIGN.md section 3 defines what is computed; this module is how, for method "pyramid", and the
+docs/conventions.md, section 3 defines what is computed; this module is how, for method "pyramid",
+and the
 entry points of all three methods. The default method, "sliced" (`_sliced.py`: the same scatter
 model built for speed, with written-out derivatives; the fitter's model), runs at ~3x one FFT
 convolution at 512x512 where the pyramid takes 30-80x and minutes to compile under `jacfwd`.
@@ -809,7 +810,7 @@ def defocus(
     hidden: bool | None = None,
     subapertures: int = 1,
 ) -> Array | tuple[Array, DefocusInfo]:
-    """The image a thin lens takes of a sharp RGB-D render (DESIGN.md section 3).
+    """The image a thin lens takes of a sharp RGB-D render (docs/conventions.md, section 3).
 
     Call as `defocus(rgb, depth, camera, ...)` or `defocus(rgbd, camera, ...)` (an `RGBD` from
     `render` supplies reflection, reflection_depth and peeled layers).
@@ -857,7 +858,7 @@ def defocus(
             (`_lens.py`: the same slices read along `LENS_SAMPLES` rays per pixel through
             points of the aperture, occlusion decided per ray: closest to the lens-sampling
             reference behind blurred edges, and ~3000x slower than "sliced"). All implement
-            the scatter model of DESIGN.md section 3.
+            the scatter model of docs/conventions.md, section 3.
         margin: the sharp input covers this many px beyond the frame on every side (rendered
             with `camera.padded(margin)`); the result is cropped to the camera's frame. The
             blur then gathers what lies just outside the frame, as a lens does: with a margin

@@ -1,4 +1,5 @@
-"""Recover focus distance and aperture radius from a defocused image (DESIGN.md section 5).
+"""Recover focus distance and aperture radius from a defocused image (docs/conventions.md, section
+5).
 
 Given a target image and the sharp RGB-D it was made from, find the thin-lens focus distance d and
 aperture radius A whose defocus reproduces the target, with standard errors, an identifiability flag
@@ -1968,11 +1969,14 @@ def fit_focus_scene(target: ArrayLike, scene, camera: Camera, *, spp: int = 1,
     the model, so reflections are blurred at their virtual depth as the lens blurs them.
 
     Args:
-        target: (H, W, 3) blurred image; camera: initial guess and the pose/fov to render with;
-        spp: samples per pixel of the sharp render; layers: peeled layers to render (None: the
-        visible surface only); supersample: render the sharp input that many times finer per
-        side (`camera.scaled(supersample)`, spp per fine pixel; see `fit_focus`'s rgb);
-        kwargs: as for `fit_focus`.
+        target: (H, W, 3) blurred image.
+        scene: the dofjax Scene.
+        camera: initial guess and the pose/fov to render with.
+        spp: samples per pixel of the sharp render.
+        layers: peeled layers to render (None: the visible surface only).
+        supersample: render the sharp input that many times finer per side
+            (`camera.scaled(supersample)`, spp per fine pixel; see `fit_focus`'s rgb).
+        **kwargs: as for `fit_focus`.
     """
     from ._raycast import render
 

@@ -2,7 +2,7 @@
 
 Everything here that builds kernels runs on the host in numpy (float64) and is cached: kernels
 depend only on static choices (window, shape), never on the fitted camera parameters, so they are
-constants of the compiled function. DESIGN.md section 3 fixes the semantics:
+constants of the compiled function. docs/conventions.md, section 3 fixes the semantics:
 
 - soft edge: a pixel's coverage of the aperture edge is `clip(rho - f(x) + 1/2, 0, 1)` where `f` is
   the shape's radial function (|x| for the disc), i.e. a linear ramp one pixel wide;

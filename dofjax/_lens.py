@@ -8,7 +8,8 @@ error on the quads benchmark scene, `benchmarks/README.md`). Here the lens is sa
 every sample is its own pinhole-like ray through the layered scene:
 
 1. Sources (the visible image, peeled layers k >= 1 or, for single-layer RGB-D, the
-   hidden-background estimate of `_hidden.hidden_layer`) have signed CoCs c (DESIGN.md section 1)
+   hidden-background estimate of `_hidden.hidden_layer`) have signed CoCs c (docs/conventions.md,
+   section 1)
    and are split between the two slices of a uniform grid of levels (`spacing` px apart, from
    +window to -window, front to back) that bracket them, with weights linear in q = c |c| (so
    the blend of the two sheets' blurs has the source's own second moment). A slice is a thin
@@ -16,7 +17,8 @@ every sample is its own pinhole-like ray through the layered scene:
    bracket towards the previous level) and of those behind it, kept apart.
 2. For a lens point l (unit aperture, image right/up axes; `_sampling.aperture_points`, the points
    `render_reference` uses), the ray through pixel x meets the sheet of level c at x + c l (a
-   source at z lands at x_pinhole - c l; DESIGN.md section 4): each sheet is read there by
+   source at z lands at x_pinhole - c l; docs/conventions.md, section 4): each sheet is read there
+   by
    Lanczos-3 interpolation (6 x 6 taps, normalised), front to back. Every interpolator blurs
    what it reads at fractional offsets, and a sub-pixel CoC is blurred mostly by that: bilinear
    reads add ~0.15 px^2 per axis, more than a |c| = 0.5 px source's own blur (Catmull-Rom

@@ -45,7 +45,7 @@ def normalize(v: ArrayLike, axis: int = -1) -> Array:
 def inverse_depth(z: ArrayLike) -> Array:
     """`1/z` for z-depth in (0, +inf]; exactly 0 at z = +inf, with a finite gradient everywhere.
 
-    DESIGN.md section 1: code works in inverse depth, which is 0 for the background.
+    docs/conventions.md, section 1: code works in inverse depth, which is 0 for the background.
     """
     z = jnp.asarray(z)
     ok = jnp.isfinite(z) & (z > 0)
@@ -53,7 +53,8 @@ def inverse_depth(z: ArrayLike) -> Array:
 
 
 def smooth_floor(r: ArrayLike, r0: float) -> Array:
-    """`sqrt(r^2 + r0^2)`: a smooth lower bound r0 on |r| (DESIGN.md section 3), C-infinity in r."""
+    """`sqrt(r^2 + r0^2)`: a smooth lower bound r0 on |r| (docs/conventions.md, section 3),
+    C-infinity in r."""
     r = jnp.asarray(r)
     return jnp.sqrt(r * r + r0 * r0)
 

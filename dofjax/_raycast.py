@@ -2,7 +2,7 @@
 
 `trace` shades arbitrary rays (the lens-sampling reference uses it); `render` builds pinhole rays
 through the pixels of a `Camera` and is itself built on `trace`'s shading path, so the two never
-disagree. Shading is exactly the Phong model documented on `dofjax.Materials` (DESIGN.md
+disagree. Shading is exactly the Phong model documented on `dofjax.Materials` (docs/conventions.md
 sections 1-3).
 
 What gets compiled depends only on the scene's static structure: absent primitive types trace no
@@ -431,7 +431,8 @@ def _closed_triangles(scene: Scene):
 
 
 def _peel(scene: Scene, o, d, layers: int, closed=None, planes=None):
-    """The first `layers` things seen along each ray, front to back (DESIGN.md section 3).
+    """The first `layers` things seen along each ray, front to back (docs/conventions.md, section
+    3).
 
     Layer 0 is exactly `_radiance` from the ray origin. Layer k >= 1 is the next surface *entered*
     from the camera side (`_front_t`: the back wall of a sphere, box or closed mesh is skipped),
@@ -863,7 +864,8 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
     the level slot that a non-mirror hit leaves unused (no extra shading per pixel or sample).
     `layers` does not change it (it describes what rgb shows).
 
-    Peeled layers are what a blurred foreground can uncover (DESIGN.md section 3). Layer 0 is the
+    Peeled layers are what a blurred foreground can uncover (docs/conventions.md, section 3). Layer
+    0 is the
     render itself: `layers.rgb[0]` is `rgb` (at any spp) and `layers.depth[0]` is `depth`. Layer
     k >= 1 is the next surface the pixel-centre ray *enters* from the camera side: the back wall of
     a sphere, a box or a closed triangle mesh is skipped (a triangle whose three edges are each

@@ -1,6 +1,6 @@
 """What the ray caster hands to the defocus stage: sharp colour, z-depth, and optional extras.
 
-DESIGN.md sections 2 and 3. All images are linear float, rows top to bottom.
+docs/conventions.md, sections 2 and 3. All images are linear float, rows top to bottom.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Sample points for the lens-sampling reference (DESIGN.md section 4).
+"""Sample points for the lens-sampling reference (docs/conventions.md, section 4).
 
 Three pieces, each a pure function of its inputs so the reference stays deterministic for a key:
 - warps from the unit square to the aperture: Shirley and Chiu's concentric disc mapping (as

@@ -769,8 +769,8 @@ def scene_from_dict(d: Mapping, base_dir: str | os.PathLike = ".") -> Scene:
         section, if present, is validated too (read it with `load_camera` / `camera_from_dict`).
 
     Raises:
-        SceneError (a ValueError) naming the offending entry, e.g. "objects[3].radius: must be > 0,
-        got -1".
+        SceneError: (a ValueError) naming the offending entry, e.g. "objects[3].radius: must be
+            > 0, got -1".
     """
     base_dir = os.fspath(base_dir)
     _check_object(d, "", ("materials", "objects"), _TOP_KEYS)

@@ -9,7 +9,8 @@ Pseudo-code from the seed (Ho & MacMichael 2016, after Yu 2004), per source pixe
         if (row^2 * col^2)^0.5 < r:      # sic: a typo for row^2 + col^2
             frameBuffer2[x + col, y + row] += intensity
 
-Yu's diameter is twice our CoC radius (DESIGN.md section 1: the same thin-lens law in other units),
+Yu's diameter is twice our CoC radius (docs/conventions.md, section 1: the same thin-lens law in
+other units),
 so r = |c(z)| with `coc_radius`. Kept as written: a hard disc edge (no gradient in r), a
 normalisation by pi r^2 instead of the discrete sum (energy is wrong for small discs), and no
 occlusion. Two changes only, both needed to run at all: the typo is read as row^2 + col^2 (a

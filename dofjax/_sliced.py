@@ -1,4 +1,5 @@
-"""Sliced defocus: DESIGN.md section 3's scatter model, built for speed, fast compiles and fitting.
+"""Sliced defocus: docs/conventions.md, section 3's scatter model, built for speed, fast compiles
+and fitting.
 
 1. Each source pixel (of the image, of every peeled layer, and of the mirror layer) has a signed
    CoC c = A k (1/z - 1/d). The signed level magnitudes `_kernels.MAGNITUDES` up to the window

@@ -1,5 +1,5 @@
 """How well can focus distance and aperture be known from one image? Fisher information and the
-Cramer-Rao bound (DESIGN.md section 5).
+Cramer-Rao bound (docs/conventions.md, section 5).
 
 For a target `y = m(d, A) + e` with independent Gaussian noise e of standard deviation sigma per
 pixel value, the Fisher information of (d, A) is

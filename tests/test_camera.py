@@ -1,4 +1,4 @@
-"""Camera conventions (DESIGN.md section 1) and the circle of confusion."""
+"""Camera conventions (docs/conventions.md, section 1) and the circle of confusion."""
 
 import math
 
@@ -72,7 +72,8 @@ def test_coc_gradient_finite_at_background():
 
 @pytest.mark.parametrize("z", [0.3, 0.9, 2.5, 10.0, 1e4])
 def test_seed_formulas_agree_after_unit_conversion(z):
-    """Demers' and Yu's CoC are the thin-lens law in other units (DESIGN.md section 1)."""
+    """Demers' and Yu's CoC are the thin-lens law in other units (docs/conventions.md, section
+    1)."""
     f, n, sensor, width, d = 0.05, 2.0, 0.036, 1000, 1.5
     cam = Camera.from_photographic(width, 600, f, n, sensor, d)
     ours = float(abs(coc_radius(jnp.asarray(z), cam)))

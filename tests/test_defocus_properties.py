@@ -65,7 +65,8 @@ def grad_energy(img):
 
 
 # "More aperture never sharper" holds for aperture steps of 15 % and more, not for every step:
-# the discrete soft disc DESIGN.md specifies, applied exactly with each source's own radius, gets
+# the discrete soft disc docs/conventions.md specifies, applied exactly with each source's own
+# radius, gets
 # sharper by up to 9 % on some 5 % steps (its pixel-sampled edge does not blur monotonically;
 # so does the hard disc integrated over pixels, by 4 %), and on no 10 % step
 # (`benchmarks/monotonicity.py`, results/monotonicity.md). The level blend of the sliced and
@@ -88,7 +89,8 @@ def test_more_aperture_never_sharper(method, rgb, a, factor, seed):
 
 
 def exact_scatter(rgb, depth, cam, aperture):
-    """Every source spread by its own soft disc (radius sqrt(c^2 + R0^2), DESIGN.md), without
+    """Every source spread by its own soft disc (radius sqrt(c^2 + R0^2), docs/conventions.md),
+    without
     occlusion, renormalised by the coverage at the frame (as the methods do): the one-kernel-per-
     source model the level blends approximate."""
     c = np.asarray(coc_radius(depth, cam.replace(aperture_radius=aperture)))

@@ -1,4 +1,4 @@
-"""The lens-sampling reference (DESIGN.md section 4) and its aperture sampling.
+"""The lens-sampling reference (docs/conventions.md, section 4) and its aperture sampling.
 
 Independent checks: the thin-lens image of a fronto-parallel plane is the sharp image convolved with
 the aperture shape scaled to |c| pixels (computed here with scipy's FFT convolution on a 4x finer
@@ -271,7 +271,8 @@ def _kernel_on_grid(radius_px: float, shape: str, blades=None, rotation=0.0, rat
     [("disc", None, 0.0, 1.0), ("polygon", 3, 0.3, 1.6)],
 )
 def test_plane_equals_sharp_image_convolved_with_the_aperture(shape, blades, rotation, ratio):
-    """A fronto-parallel plane at depth z images to sharp (*) aperture scaled to |c| (DESIGN 1)."""
+    """A fronto-parallel plane at depth z images to sharp (*) aperture scaled to |c|
+    (docs/conventions.md, section 1)."""
     size, z0, focus, aperture = 32, 2.0, 1.0, 0.2
     scene = _plane_scene(z0)
     cam = _camera(size, focus=focus, aperture=aperture)
@@ -294,7 +295,7 @@ def test_plane_equals_sharp_image_convolved_with_the_aperture(shape, blades, rot
     )
     sharp_fine = np.asarray(render(scene, fine_cam).rgb)
     # A far-field source (c < 0) lands at x_pinhole + |c| * lens: the point reflection of the
-    # near-field footprint (DESIGN.md section 3).
+    # near-field footprint (docs/conventions.md, section 3).
     kern = _kernel_on_grid(abs(c) * f, shape, blades, rotation, ratio)[::-1, ::-1]
     blurred = np.stack([fftconvolve(sharp_fine[..., i], kern, mode="same") for i in range(3)], -1)
     blurred = blurred.reshape(big, f, big, f, 3).mean(axis=(1, 3))
