@@ -1,64 +1,11 @@
-"""Depth-of-field from sharp RGB-D: the differentiable, occlusion-aware soft-disc defocus.
+"""Depth of field from sharp RGB-D: the entry points of every method, and method "pyramid".
 
-docs/conventions.md, section 3 defines what is computed; this module is how, for method "pyramid",
-and the
-entry points of all three methods. The default method, "sliced" (`_sliced.py`: the same scatter
-model built for speed, with written-out derivatives; the fitter's model), runs at ~3x one FFT
-convolution at 512x512 where the pyramid takes 30-80x and minutes to compile under `jacfwd`.
-
-Algorithm of method "pyramid" (a layered pyramid):
-
-1. Every source pixel q (of every layer) has a signed CoC c(q) = A k (1/z - 1/d) (`coc_radius`)
-   and a smoothly floored kernel radius rho = sqrt(c^2 + R0^2), R0 = 0.5 px.
-2. Radius levels m_0 = 0 < m_1 < ... < m_n = window (two per octave, `_kernels.MAGNITUDES`) and
-   their signs give depth slices, ordered front to back: +m_n ... +m_1, 0, -m_1 ... -m_n. A source
-   is split between the two slices that bracket it, with weights linear in the second moment of
-   its own soft kernel (so the blend's
-   second moment is exactly that of the source's own kernel, and the weights are smooth in c at
-   c = 0: the gradient exists on the focal plane).
-3. Each slice holds premultiplied colour and coverage (split into the part in front of and behind
-   the slice's level) and is convolved with its level's soft kernel (normalised by its discrete
-   sum). Levels with large radius run at 1/2, 1/4, ... resolution with kernels shrunk so the
-   blur's second moment is still right: every convolution is a small (<= 9x9 for the disc)
-   shift-and-add.
-4. Slices are composited front to back with additive coverage, T_p = clip(1 - occluders, 0, 1),
-   where the occluders of slice p are all slices nearer than p - 1 plus the front part of
-   p - 1 (a source never occludes itself across its two slices), and the result is normalised by
-   the composited coverage. So a nearer blurred surface spreads over what lies behind it and a
-   farther one never spreads over a nearer sharp one.
-5. What a blurred foreground edge uncovers: peeled `layers` if given; for single-layer RGB-D an
-   explicit hidden-background layer (pull-push fill of the locally farthest pixels, placed behind
-   pixels that are > 1-2 px of CoC nearer than the farthest surface within the window).
-6. Mirrors: the reflected radiance is a separate, additive source blurred at its own virtual depth;
-   the mirror surface keeps the rest of the colour at the mirror's depth. With the mirrors'
-   footprint (`RGBD.mirror`, a `Mirror`), the reflection is C * V instead: V the virtual scene
-   (the mirror's radiance, known a little beyond the footprint, at its virtual depth) defocused
-   as its own single-layer RGB-D by the same method (its occlusion: a nearer reflected object
-   hides the reflected sky behind it), C the footprint scattered at the visible surface's depth
-   (a fourth channel of the surfaces' pass, occluded and renormalised where the coverage is
-   below 1 like their colour: the share of the lens that sees the mirror, so a blurred
-   foreground in front of the mirror hides the reflection as it hides the mirror). A lens sees
-   the virtual scene only through the mirror, so an in-focus mirror edge stays sharp however
-   blurred the reflection. (Unconfined, the scatter leaked the reflection up to its CoC past
-   the edge, darkened the mirror inside it where the virtual scene beyond the footprint was
-   missing, and spread the reflected sky over the reflected objects in front of it:
-   benchmarks/README.md.)
-
-All of it is smooth jnp maths on fixed shapes, so forward- and reverse-mode derivatives w.r.t.
-`focus_distance`, `aperture_radius` and the colours cost a small multiple of the forward pass.
-
-Entry points:
-
-- `defocus(rgb, depth, camera, ...)` / `defocus(rgbd, camera, ...)`: the user-facing call. Without
-  `window=`, it validates the input on the host, returns the input unchanged when there is nothing
-  to blur (aperture 0 or every |c| < 0.25 px), picks the window from the image's largest |c|
-  (bucketed to the level magnitudes, so nearby values share one compilation), and warns (and
-  reports in `DefocusInfo`) when a |c| beyond the largest supported window (128 px) is clamped.
-  With a static `window=` (px) it is a pure function and can be called under `jax.jit`/`vmap`.
-- **`defocus_fn(rgb, depth, camera, *, window=..., ...)` -> `f(focus_distance, aperture_radius)`**:
-  the jittable entry point for fitting. It validates the image once, fixes the window (|c| above
-  it is clamped to it), and returns a pure function of the two scalars, safe to `jax.jit`,
-  `jax.vmap` over starts, and differentiate (`jacfwd`, `grad`) inside optimistix solvers.
+`defocus` is the user-facing call (it validates on the host, picks the window from the image when
+none is given, returns the input when there is nothing to blur); `defocus_fn` returns a pure,
+jittable `f(focus_distance, aperture_radius)` for fitting. Both dispatch to the methods: "sliced"
+(the default, `_sliced.py`), "exact" (`_exact.py`), "lens" (`_lens.py`) and the layered pyramid
+implemented here. What is computed: docs/conventions.md, section 3; how each method computes it,
+the pyramid's steps and the mirror confinement: docs/defocus.md.
 """
 
 from __future__ import annotations
@@ -405,11 +352,10 @@ def _core(rgb, inv, alpha, refl, refl_inv, cover, focus_distance, aperture_radiu
     c_raw, c = coc(inv)
     max_abs = jnp.max(jnp.abs(c_raw))
     # A hidden layer matters only where its blur differs from the visible surface's by more than a
-    # pixel: closer than that it is seen through the surface one slice in front of it (the
-    # quads benchmark: layered RMSE 0.024 -> 0.011 with this gate), as in the sliced method.
-    # The same holds for the hidden-background estimate: its pull-push fill can put it within
-    # a pixel of CoC of the surface in front (behind a slanted in-focus mirror's far edge it
-    # showed through at ~45 %, benchmarks/README.md), so it is gated alike.
+    # pixel: closer than that it would show through the surface one slice in front of it, as
+    # in the sliced method. The same holds for the hidden-background estimate: its pull-push
+    # fill can put it within a pixel of CoC of the surface in front (behind a slanted in-focus
+    # mirror's far edge, say), so it is gated alike.
     # (by `_sliced.coverages`, with the front share of silhouette pixels if `config.front`,
     # in levels of -c: a source 1 px of CoC behind another is a level behind it)
     def behind(i_hidden, i_visible):
@@ -565,8 +511,8 @@ def _run_and_pool(rgb, depth, camera, reflection, reflection_depth, layers, mirr
 
 
 # Jitted for eager `defocus` calls: run op by op, the wrappers around the jitted cores (the
-# sliced method's hidden-background estimate, its derivative routing, the pooling) cost
-# 0.2-2 ms per call at 64 x 64 and 10-40 ms at 512 x 512 (benchmarks/README.md).
+# sliced method's hidden-background estimate, its derivative routing, the pooling) would add
+# their dispatch overhead to every call.
 _run_pooled = partial(jax.jit, static_argnames=(
     "window", "blades", "rotation", "ratio", "method", "samples", "hidden", "s", "margin",
     "subapertures"))(
@@ -592,17 +538,17 @@ def _sliced(rgb, depth, camera, reflection, reflection_depth, layers, window, bl
     y = jnp.stack(jnp.broadcast_arrays(jnp.asarray(camera.focus_distance),
                                        jnp.asarray(camera.aperture_radius)))
     # derivatives w.r.t. (focus, aperture) through J = d image / d(focus, aperture), built by
-    # one written-out forward-mode pass (`sliced_defocus_jacobian`, ~3x a forward pass): a
-    # reverse-mode gradient then costs that pass, not a transpose of the shifted-sum blurs
-    # (~9x their forward cost on the CPU); derivatives w.r.t. the images and the camera's
+    # one written-out forward-mode pass (`sliced_defocus_jacobian`): a reverse-mode gradient
+    # then costs that pass, not a transpose of the shifted-sum blurs (several times their
+    # forward cost on the CPU); derivatives w.r.t. the images and the camera's
     # other fields by plain autodiff. The model reads focus and aperture from y only: their
     # copies in args carry no tangent (else the rule would add a whole second forward-mode
     # pass for a zero contribution)
-    # Reverse mode transposes `J @ dy` by the model's own adjoint (`sliced_defocus_adjoint`,
-    # ~1.25x a forward pass) from the value lane's residuals, so a gradient costs the value
-    # pass with its residuals plus the adjoint (2.9-3.0x a forward pass at 512 x 512,
-    # session 38) instead of J plus the contraction (~3.2x): XLA drops whichever of J and
-    # the residuals the mode does not use.
+    # Reverse mode transposes `J @ dy` by the model's own adjoint (`sliced_defocus_adjoint`)
+    # from the value lane's residuals, so a gradient costs the value pass with its residuals
+    # plus the adjoint instead of J plus the contraction (cheaper; `python
+    # benchmarks/defocus.py --skip-accuracy --methods sliced` measures both modes): XLA drops
+    # whichever of J and the residuals the mode does not use.
     rest = camera.replace(focus_distance=jax.lax.stop_gradient(camera.focus_distance),
                           aperture_radius=jax.lax.stop_gradient(camera.aperture_radius))
     # (inside a forward-only Jacobian, such as the fitter's, no residuals are needed)
@@ -822,8 +768,8 @@ def defocus(
             or W/s and H/s for an integer s: a sharp input rendered s times finer
             (`render(scene, camera.scaled(s), ...)`) is defocused on its own grid and the result
             box-averaged to the camera's (H/s, W/s). A pixel on a depth edge then mixes its
-            surfaces over 1/s of a pixel, each blurred at its own depth (see
-            benchmarks/README.md for what it buys); window and info stay in the camera's px.
+            surfaces over 1/s of a pixel, each blurred at its own depth (docs/defocus.md,
+            "Inputs that every method uses"); window and info stay in the camera's px.
         shape: "disc" or "polygon" (then `blades` >= 3 and `rotation` in radians, counter-clockwise,
             0 puts a vertex on +x). Near-field (c > 0) kernels are the point reflection of far ones.
         ratio: anamorphic width / height of the aperture (1 = round).
@@ -831,13 +777,14 @@ def defocus(
             and its virtual z-depth; it is blurred at that depth instead of the mirror's.
         mirror: a `Mirror` (from `render`, in `RGBD.mirror`): the mirrors' footprint and what they
             show a little beyond it. The blurred reflection is then confined to the blurred
-            footprint (module docstring, step 6); reflection / reflection_depth default to
+            footprint (docs/defocus.md, "Mirrors"); reflection / reflection_depth default to
             `coverage * radiance` / `depth`. Without it the reflection is added unconfined.
         layers: peeled surfaces (K, H, W, ...) from `render(..., layers=K)`: used instead of rgb and
             the hidden-background estimate, so blurred foreground edges uncover real surfaces.
             With `layers.edges` (`render` at spp > 1, a `dofjax.Edges`) each silhouette pixel
-            is blurred share by share, each surface's at its own depth (README, "Silhouette
-            pixels"); checked: shapes, finite, shares in [0, 1] summing to at most 1, no
+            is blurred share by share, each surface's at its own depth (docs/defocus.md,
+            "Inputs that every method uses"); checked: shapes, finite, shares in [0, 1] summing
+            to at most 1, no
             layer-1 share where there is no layer 1.
         window: static largest |c| (px) to support; rounded up to a level magnitude (1, 2, 3, 4, 6,
             8, 12, ..., 128); |c| beyond it is clamped to it. None: chosen from the image (host
@@ -847,50 +794,45 @@ def defocus(
             `jax.jit`/`vmap`.
         return_info: also return a `DefocusInfo`.
         method: "sliced" (default; `_sliced.py`: depth slices, coarse ones at reduced
-            resolution, composited in `lax.scan`s with written-out derivatives; ~3x one FFT
-            convolution, compiles in seconds; the fitter's default model, so a target made by
-            a bare `defocus` call is the model a bare `fit_focus` fits), "pyramid" (the
-            layered pyramid above: 30-80x slower, minutes to compile under `jacfwd`/`grad`;
-            every level of |c| <= 4 at full resolution, so a constant depth up to 4 px is one
-            convolution), "exact" (`_exact.py`: every source spread by its own kernel, so a
-            constant depth is the exact kernel convolution for any |c| and aperture shape;
-            ~17x "sliced" at 512x512 with every slice reached; docs/defocus.md) or "lens"
-            (`_lens.py`: the same slices read along `LENS_SAMPLES` rays per pixel through
-            points of the aperture, occlusion decided per ray: closest to the lens-sampling
-            reference behind blurred edges, and ~3000x slower than "sliced"). All implement
-            the scatter model of docs/conventions.md, section 3.
+            resolution, composited in `lax.scan`s with written-out derivatives; the fastest,
+            and the fitter's default model, so a target made by a bare `defocus` call is the
+            model a bare `fit_focus` fits), "pyramid" (the layered pyramid: much slower, slow
+            to compile under `jacfwd`/`grad`; every level of |c| <= 4 at full resolution, so a
+            constant depth up to 4 px is one convolution), "exact" (`_exact.py`: every source
+            spread by its own kernel, so a constant depth is the exact kernel convolution for
+            any |c| and aperture shape) or "lens" (`_lens.py`: the same slices read along
+            `LENS_SAMPLES` rays per pixel through points of the aperture, occlusion decided per
+            ray: closest to the lens-sampling reference behind blurred edges, and by far the
+            slowest). All implement the scatter model of docs/conventions.md, section 3; their
+            accuracy and speed: docs/defocus.md.
         margin: the sharp input covers this many px beyond the frame on every side (rendered
             with `camera.padded(margin)`); the result is cropped to the camera's frame. The
-            blur then gathers what lies just outside the frame, as a lens does: with a margin
-            of the largest |c| + 2 px the lens method's RMSE on quads fell from 0.0088 to 0.0054
-            (benchmarks/README.md). Counted in the camera's px (times s when supersampled).
-        samples: lens points per pixel for method "lens" (None: `LENS_SAMPLES` = 256). 64 runs
-            ~3.5x faster; on the lens-reference fit cases of benchmarks/README.md the model's
-            mismatch at the true camera rose from 0.0216 to 0.0224 (median relative rms).
+            blur then gathers what lies just outside the frame, as a lens does (use the
+            largest |c| + 2 px; docs/defocus.md, "Inputs that every method uses"). Counted in
+            the camera's px (times s when supersampled).
+        samples: lens points per pixel for method "lens" (None: `LENS_SAMPLES` = 256). Fewer
+            run faster at a little more noise (docs/defocus.md, "Why the options exist").
         hidden: single-layer input (no `layers`): estimate the background hidden behind
             foreground edges (pull-push fill of the locally farthest pixels), so a blurred
             foreground edge uncovers something instead of stretching over the gap. None: the
             method's default, on for "pyramid" and "lens" (which re-estimate it from the CoC
             at every camera) and off for "sliced", where it is made from the images alone
             (`_hidden.hidden_layers`: by every `defocus` call, once by `defocus_fn`) and
-            blurred as a second layer. That costs ~1.3x the forward pass plus the estimate
-            (an eager 256x256 call 10.8 -> 19.7 ms) and takes the single-layer RMSE against
-            the lens-sampling reference on quads.json from 0.0212 to 0.0149 (the pyramid's
-            0.0145; benchmarks/README.md). Off by default so that the default `defocus` is the
-            fitter's default model. True with `layers` is an error.
+            blurred as a second layer: a second layer's cost for a lower error behind
+            blurred edges (docs/defocus.md, "Why the options exist"). Off by default so that
+            the default `defocus` is the fitter's default model. True with `layers` is an
+            error.
         subapertures: method "sliced": split the aperture into this many equal-angle sectors
             (from `rotation`, counter-clockwise) and composite the slices through each on its
             own, then average the images by the sectors' areas. Compositing blurred slices
             front to back multiplies the average over the aperture of what a blurred
             foreground leaves visible by the average of what lies behind it; a lens averages
             their product per ray. Per sector the two vary less, so the error behind blurred
-            edges falls: against the lens-sampling reference (128 px, max |c| 12, 3 peeled
-            layers, guard band) RMSE on quads 0.0110 -> 0.0077 with 4, 0.0070 with 8 (the lens
-            method 0.0055), on spheres 0.0225 -> 0.0154, boxes 0.0141 -> 0.0110
-            (benchmarks/README.md). One pass builds each slice once and blurs and composites
-            it per sector, a sector's levels at full resolution up to twice the CoC of the
-            whole aperture's: 4 sectors take ~3x the time at 512x512, 8 ~6x; derivatives
-            written out as for 1. Default 1 (the whole aperture at once).
+            edges falls (docs/defocus.md, "Accuracy and speed"). One pass builds each slice
+            once and blurs and composites it per sector, a sector's levels at full resolution
+            up to twice the CoC of the whole aperture's; the time grows with the number of
+            sectors; derivatives written out as for 1. Default 1 (the whole aperture at
+            once).
 
     Returns:
         (H, W, 3) defocused linear colour (and the info when asked).

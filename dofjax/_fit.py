@@ -1,57 +1,10 @@
-"""Recover focus distance and aperture radius from a defocused image (docs/conventions.md, section
-5).
+"""Recover focus distance and aperture radius from a defocused image: `fit_focus`.
 
-Given a target image and the sharp RGB-D it was made from, find the thin-lens focus distance d and
-aperture radius A whose defocus reproduces the target, with standard errors, an identifiability flag
-and an explicit report of the near/far ambiguity.
-
-How the fit works:
-- Parameterisation. The CoC `c = A k (1/z - 1/d)` is affine in u = 1/d and linear in A, so the
-  solvers work in u and log A, each squeezed into its bounds by MINUIT's map
-  (`u = u_lo + (u_hi - u_lo) (1 + sin p) / 2`), so no solver step can leave the bounds. The
-  bounds are given by the user on d and A (world units) and mapped.
-- The sharp RGB-D does not depend on d or A: only the defocus model runs per solver step.
-- Multi-start: a grid of u inside the bounds (plus the user's guess), all solved in one
-  `eqx.filter_vmap` batch at loose tolerance, on a 2^L-downsampled copy of the images (pixel
-  scale k / 2^L, so the CoC in pixels shrinks with the image). Each start first takes the
-  aperture with the lowest loss among the guess and a log-spaced grid inside the bounds (forward
-  passes only), so a guess far below the true aperture (an image that looks sharp: no
-  information about focus) does not strand the starts. The best start and the best start on the
-  *other side* of the scene's median inverse depth are then polished at full resolution, one
-  after the other (the second only if it exists). Before the pick, every distinct end point is
-  refined a few steps on each finer pyramid level (`_screen`), then joined by the lowest local
-  minima of a scan of u at full resolution (`_scan`: forward passes only, each scan point with
-  its best aperture from the same grid; only when the multi-start ran downsampled); the 3 of
-  lowest full-resolution loss, apart in u, are refined there and the pick is made on the
-  full-resolution loss. The true basin in u can be narrower than the starts' spacing, and
-  when the blur is a pixel or two the downsampled levels' minima lie in other basins: the
-  scan is what finds it. The scan also visits the inverse depths of the scene's most common
-  surfaces (`_depth_modes`): a focus on or near a surface that fills most of the image gives
-  a basin narrower than any affordable grid's spacing, and those points are screened even
-  when they do not rank among the 3 (within `_MODE_RATIO` of the best other loss).
-- Cost per solver step: the residual's JVP is a product with a Jacobian materialised once per
-  evaluation by `jax.jacfwd` (`_autodiff.value_and_jacobian`; through the sliced model that is
-  its written-out forward mode, `_sliced.sliced_defocus_jacobian`), so optimistix's
-  linearisations (one per column, the predicted reduction, every rejected step) never run the
-  model again.
-  That Jacobian (w.r.t. u and log A) is also the residual's auxiliary output: the polish's
-  last one gives the covariance.
-  Levenberg-Marquardt accepts steps that change the loss only at float rounding level
-  (`_TrustRegion`). Its linear solves use `_linalg.ThinQR` (Gram-Schmidt on the 1-2 columns),
-  not LAPACK: jaxlib's batched LAPACK kernels deadlocked `fit_focus_batch` on several devices.
-- Near/far ambiguity: |c| is symmetric about each depth, so a scene with (almost) one depth fits
-  equally well with focus in front of or behind it. If the polished alternative's sum of squares
-  exceeds the best one's by less than `ambiguity_threshold * s^2` (a likelihood-ratio test; s^2
-  is the residual variance), the result is flagged `ambiguous` and both minima are reported.
-- Uncertainty: covariance = s^2 (J^T J)^-1 with J = d residual / d (d, A) in world units, the
-  polish's Jacobian at the optimum by the chain rule (no further pass through the model). The
-  columns of J are normalised before the (SVD) inverse; a normalised condition number above
-  `max_condition`, a parameter at its bound, or a solution whose largest CoC is below a quarter
-  pixel (the target looks sharp) gives `identifiable=False`, as does a tile-robust standard
-  error above half the parameter's value (below). Beside it, the tile-robust
-  (cluster-robust sandwich) covariance sums J^T r over tiles of up to 16 x 16 px: where the
-  model misses part of the target the residual is spatially correlated, s^2 (J^T J)^-1
-  understates the error, and the sandwich does not (`_uncertainty`).
+Given a target image and the sharp RGB-D it was made from, find the thin-lens focus distance d
+and aperture radius A whose defocus reproduces the target, with standard errors, an
+identifiability flag and an explicit report of the near/far ambiguity. Also `fit_focus_batch`,
+`fit_focus_scene`, `FitResult` and `DefocusModel`. The algorithm (multi-start, screen, scan,
+polish) and why it is built so: docs/fitting.md; conventions: docs/conventions.md, section 5.
 """
 
 from __future__ import annotations
@@ -120,16 +73,16 @@ _SCAN_MODES = 4
 _MODE_BINS = 256
 _MODE_SHARE = 0.02
 # A mode is screened whatever its rank when its loss is within this factor of the best other
-# candidate's (with its grid aperture, case 103's true basin had 3.4x the best wrong minimum's
-# loss; screening every mode made a quads fit 2.1x slower).
+# candidate's: with its grid aperture a narrow true basin can score a few times the best wrong
+# minimum's loss, and screening every mode would slow every fit (docs/fitting.md, "Why the
+# search is built this way").
 _MODE_RATIO = 10.0
 # Largest side (px) of the tiles of the tile-robust covariance (`_tile_size`), and the ratio of
 # tile-robust to noise-only standard error above which the residual counts as structured.
 _SE_TILE = 16
 _STRUCTURED_RATIO = 3.0
 # A fitted parameter whose tile-robust standard error exceeds this fraction of its value is not
-# determined by the image (lens-reference case 4, 128 px: focus distance at +215 %, standard
-# error 85 % of it; every other case there: <= 2.5 %).
+# determined by the image (docs/fitting.md, "Why the search is built this way").
 _MAX_REL_SE = 0.5
 
 
@@ -275,21 +228,19 @@ class _TrustRegion(optx.ClassicalTrustRegion):
     """optimistix's classical trust region, with a rounding floor and a scaled first damping.
 
     At the minimum of a noise-free target the loss is at float rounding level and a step can
-    raise it by rounding alone; LM rejected such steps five times in a row (shrinking its step
-    each time) before one was accepted and the solve could stop. A step that raises the loss by
+    raise it by rounding alone; plain LM rejects such steps several times in a row (shrinking its
+    step each time) before one is accepted and the solve can stop. A step that raises the loss by
     no more than `floor` (mean squared residual) or 1e-6 of it is accepted.
 
     The first damping (1 / step size) is `damping` x max diag(J^T J) at the initial point
     (optimistix starts at damping 1 whatever the scale of J). The mean-scaled residuals have
-    J^T J ~ 1e-4, so damping 1 took the first ~6 steps of every solve at a few thousandths of
-    the Gauss-Newton step, growing 3.5x per step. Moré's 1e-3 x max diag jumped from the
-    multi-start level's (downsampling-biased) minimum into other basins at 256x256 (86 % of 91
-    noise-free cases within 1e-3); 1 x max diag (a first step about half Gauss-Newton's) keeps
-    90 % and takes 8 instead of 12 steps from a guess far from the minimum. The full-resolution
-    screen starts from that level's own loss (the scan's minima, the screened coarse end
-    points) and takes 0.1 (`_SCREEN_DAMPING`): on the 256x256 suite its median fit time fell
-    from 2.26 to 1.89 s with no case lost (0.1 on the 128x128 screen too sent case 103 to a
-    wrong basin).
+    J^T J ~ 1e-4, so damping 1 would spend the first steps of every solve at a few thousandths
+    of the Gauss-Newton step; Moré's 1e-3 x max diag jumps from the multi-start level's
+    (downsampling-biased) minimum into other basins. 1 x max diag gives a first step about half
+    Gauss-Newton's. The full-resolution screen starts from that level's own loss (the scan's
+    minima, the screened coarse end points) and takes 0.1 (`_SCREEN_DAMPING`), which is faster
+    at no loss of cases; coarser screens keep 1 (docs/fitting.md, "Why the search is built this
+    way").
     """
 
     floor: Array = eqx.field(default_factory=lambda: jnp.array(0.0))
@@ -426,14 +377,13 @@ def _predict(ul: Array, data: _Data, camera: Camera, model: Callable) -> Array:
     cam = camera.replace(focus_distance=1.0 / ul[0], aperture_radius=jnp.exp(ul[1]))
     extras = {} if data.extras is None else data.extras.kwargs()
     # the solvers differentiate the residual through their own dense Jacobian (`_solve`), which
-    # the sliced model's written-out one (`sliced_defocus_jacobian`) feeds (256 x 256
-    # `benchmarks/fit_speed.py`: 0.93-0.96 s per fit vs 0.99-1.01 s with plain forward mode
-    # through the model, alternating runs).
+    # the sliced model's written-out one (`sliced_defocus_jacobian`) feeds (faster than plain
+    # forward mode through the model: `python benchmarks/fit_speed.py`).
     # The abstract mesh in force is set explicitly: JAX traces a custom JVP rule (that of
     # `value_and_jacobian`, which optimistix's Gauss-Newton family linearises) with it set (to
     # the empty mesh when there is none) and everything else with it unset, and the jitted
-    # defocus's trace cache keys on that context: each resolution's model was traced twice
-    # (tracing + lowering of a 256x256 fit: 10.3 s with the misses, 7.7 s without).
+    # defocus's trace cache keys on that context: without this each resolution's model would
+    # be traced twice, lengthening the first call's tracing and lowering.
     with jax.sharding.use_abstract_mesh(jax.sharding.get_abstract_mesh()):
         pred = model(data.rgb, data.depth, cam, **extras)
     # without the guard band (`camera` is then the padded one, `_prepare`), box-averaged to the
@@ -612,7 +562,7 @@ def _polish(state, has_alt, data, camera, param, spec, model, delta0, rtol, atol
     two). Round 0 polishes the pair; rounds >= 1 re-estimate the robust scale from the residuals
     (MAD) and re-solve (an IRLS-style outer loop). The two are solved one after the other, the
     alternative only if there is one: vmapped, each would step until the slower had converged
-    (2.5x the time of one solve, measured at 256x256).
+    (more than twice the time of one solve).
     """
     active = jnp.stack([jnp.asarray(True), has_alt])
 
@@ -659,9 +609,9 @@ def _screen_polish(ys, loss, steps, dup, priority, u_scene, data, camera, param,
     Tasks 0..k-1 screen the points `ys` (k of them, in the order of `priority`), task k picks
     the pair from their end points and polishes the best, k + 1 the alternative, and so on for
     each robust round. Written as two loops (`_screen`, `_polish`), the full-resolution model
-    and its Jacobian are compiled twice: as one, a 256x256 fit compiles in ~2.4 s less (21.2-22.1
-    -> 18.7-19.3 s, `benchmarks/fit_speed.py`'s fit; benchmarks/README.md). Returns `_polish`'s
-    outputs and has_alt.
+    and its Jacobian are compiled twice: as one, a fit compiles in less time (`python
+    benchmarks/fit_speed.py` reports the compile time). Returns `_polish`'s outputs and
+    has_alt.
     Not used by a vmapped robust fit (see `_fit_core`).
     """
     k = ys.shape[0]
@@ -862,9 +812,9 @@ def _scan(y_scan, modes, values):
     loss understates it).
 
     At 256x256 the true basin in u is often narrower than the spacing of the 8 starts, and the
-    downsampled levels' minima lie elsewhere when the blur is a pixel or two: in the 100-case
-    noise-free suite, 5 cases ended in another basin and were reported "ok" (see
-    benchmarks/README.md)."""
+    downsampled levels' minima lie elsewhere when the blur is a pixel or two: without the scan
+    such fits end in another basin and are reported "ok" (docs/fitting.md, "Why the search is
+    built this way")."""
 
     key = _local_minima(values)
     _, idx = jax.lax.top_k(-key, min(_SCAN_KEEP, values.shape[0]))
@@ -902,8 +852,8 @@ def _fit_core(data, search, levels, camera, fine, cameras, param, y_starts, u_sc
     def with_best_aperture(ys):
         # Each start's aperture is the best of a grid in log A (plus the guess) by the loss at
         # the multi-start level: from an aperture far below the truth every pixel looks sharp,
-        # the loss is flat in the focus and the start cannot find the basin (the noise study in
-        # benchmarks/fit_accuracy.py lost 27 of 28 such fits before this).
+        # the loss is flat in the focus and the start cannot find the basin (`python
+        # benchmarks/fit_accuracy.py --noise` exercises such guesses).
         if y_apertures is None:
             return ys
         ai = spec.free.index(1)
@@ -1524,9 +1474,9 @@ def _depth_modes(fracs: np.ndarray, n: int = _SCAN_MODES) -> np.ndarray:
 
     A focus plane that sits on a surface is common (a photographer focuses on the subject), and
     then the loss has a spike there as narrow as the surface's spread of inverse depth: a plane
-    covering 90 % of a 256x256 image put the true basin inside 0.01 of the u range, between
-    two points of any affordable grid, and the fit ended in another basin (data_gen case 103,
-    benchmarks/README.md). A histogram over the bounds finds the surfaces with at least
+    covering most of the image can put the true basin between two points of any affordable
+    grid (docs/fitting.md, "Why the search is built this way"). A histogram over the bounds
+    finds the surfaces with at least
     `_MODE_SHARE` of the pixels, largest first and more than two bins apart; each mode is the
     median inverse depth in its bin (exact for a fronto-parallel plane). Unused places repeat
     the largest mode (or the middle of the bounds when no surface qualifies), so the number of
@@ -1649,7 +1599,8 @@ def _prepare(target, rgb, depth, camera, mask, bounds, fixed, solver, loss, star
         base = DefocusModel(window=float(max(win, 1.0)), **(defocus_options or {}))
         # the exact and lens methods and sub-apertures only polish: their minimum lies in the
         # plain sliced model's basin, and a search with them would cost several times (exact),
-        # ~1000x (lens) or K x as much and compile K copies at every level (defocus_options)
+        # orders of magnitude (lens) or K x as much and compile K copies at every level
+        # (defocus_options)
         search = (dataclasses.replace(base, method="sliced", samples=None, subapertures=1)
                   if base.method in ("exact", "lens") or base.subapertures > 1 else base)
         # the polish's on a supersampled sharp input: CoCs in its s times smaller pixels
@@ -1846,9 +1797,8 @@ def fit_focus(
             `camera.scaled(s)`. The polish then defocuses it on its own grid and box-averages
             the prediction to the target's pixels; the search runs on it box-averaged first. A
             pixel on a depth edge then mixes two surfaces over 1/s of the width, so each part
-            is blurred at its own depth: on the lens-reference cases of benchmarks/README.md
-            (lens model, s = 2) the mismatch at the true camera fell from 0.022 to 0.010
-            (median) and the aperture's error from 2.65 % to 0.96 %, at 3-13x the fit time.
+            is blurred at its own depth: closer to a lens-sampled target, for several times the
+            fit time (docs/fitting.md, "Why the search is built this way").
         camera: the initial guess for focus_distance and aperture_radius, and everything that is
             not fitted (fov, resolution). Its width x height must equal the target's (and the
             sharp input's, or divide it: see above).
@@ -1872,17 +1822,16 @@ def fit_focus(
             than atol + rtol |y| and every (mean-scaled) residual by less than atol + rtol |r|
             (max norms). None: 1e-6 and 1e-8 in float32, 1e-8 and 1e-10 in float64. float32
             needs the looser pair: at the minimum of a noisy target each LM step moves y by
-            rounding (~1e-7 relative) and the residuals by a few eps of the pixel values, so
-            the float64 pair ended 41 of 100 noisy 256x256 fits at max_steps, flagged not
+            rounding, and the float64 pair would end many fits at max_steps, flagged not
             converged, at the right minimum.
         max_steps: per polish solve; start_steps: per multi-start solve (at tolerance 1e-4).
         screen_steps: when the multi-start ran on a downsampled copy, every distinct start's
             end point is refined for up to this many steps (tolerance 1e-4) on each finer
             pyramid level and then at full resolution, and the pair to polish is picked by the
-            full-resolution loss (0: picked at the multi-start level). The downsampled loss is
-            biased at small CoC (a blur of a pixel or less leaves almost no trace after 4x4
-            pooling), and its ranking picked the wrong basin in 19 of 91 noise-free 256x256
-            cases. The starts are screened lowest loss first; a screen also stops once its
+            full-resolution loss (0: picked at the multi-start level). It exists because the
+            downsampled loss is biased at small CoC (a blur of a pixel or less leaves almost no
+            trace after 4x4 pooling), so its ranking can pick the wrong basin. The starts are
+            screened lowest loss first; a screen also stops once its
             next step is below 1e-4 (the polish goes on from there), or lands within 0.2 % of
             the bounds of (or it is itself within 1 % of) an earlier start's end point at no
             lower loss: that start is on its way into a known minimum and drops out.
@@ -1890,24 +1839,19 @@ def fit_focus(
             many points evenly spaced in u = 1/d inside the bounds, each with its best aperture
             from the multi-start level's grid, and the 3 lowest local minima along the scan
             join the coarse end points at the full-resolution screen, which refines the 3 of
-            lowest loss that lie half a scan spacing apart in u. The true basin is often
-            narrower in u than the spacing of the starts, and at a blur of a pixel or two the
-            downsampled levels' minima lie in other basins: at 256x256 24 points took the
-            noise-free suite from 90 % to 97 % of cases within 1e-3 at about the same median
-            fit time, 48 to 98 % (a planes case's basin fell between 24 points). Only when
-            the multi-start runs downsampled (see coarse_size) and screen_steps > 0: at 64x64,
-            with the multi-start at full resolution, the scan's minima as extra starts changed
-            nothing (96 % either way). 0: no scan. The scan also visits the inverse depths
-            of the scene's (up to 4) most common surfaces, where a focus plane on a surface
-            puts a basin narrower than any affordable grid's spacing. When the pyramid has a
-            level between the multi-start's and full resolution (256x256 and larger with the
-            default coarse_size), the scan runs one level below full resolution first (a
-            quarter of the pixels); only its 4 lowest local minima there, their neighbours on
-            the grid and the modes are then evaluated at full resolution, where the minima are
-            picked as above (at 256x256: at most 16 of the 48 + 4 full-resolution forward
-            passes; the noise-free suite unchanged at 101 of 101). At 128x128 that level is
-            the multi-start's, whose minima are biased, and the whole scan runs at full
-            resolution (the half-resolution pass lost 3 of 101 noise-free cases there).
+            lowest loss that lie half a scan spacing apart in u. It exists because the true
+            basin is often narrower in u than the spacing of the starts, and at a blur of a
+            pixel or two the downsampled levels' minima lie in other basins (docs/fitting.md,
+            "Why the search is built this way"). Only when the multi-start runs downsampled
+            (see coarse_size) and screen_steps > 0. 0: no scan. The scan also visits the
+            inverse depths of the scene's (up to 4) most common surfaces, where a focus plane
+            on a surface puts a basin narrower than any affordable grid's spacing. When the
+            pyramid has a level between the multi-start's and full resolution (256x256 and
+            larger with the default coarse_size), the scan runs one level below full
+            resolution first (a quarter of the pixels); only its 4 lowest local minima there,
+            their neighbours on the grid and the modes are then evaluated at full resolution,
+            where the minima are picked as above. At 128x128 that level is the multi-start's,
+            whose minima are biased, and the whole scan runs at full resolution.
         coarse_size: the multi-start runs on the image box-downsampled by 2^L, the largest factor
             keeping min(H, W) / 2^L >= coarse_size (None: always full resolution); the best
             start and the best one on the other side of the scene depth are then polished at
@@ -1921,13 +1865,15 @@ def fit_focus(
             defocus clamps). The multi-start level uses window / 2^L.
         defocus_options: shape/blades/rotation/ratio/method/samples/hidden/subapertures passed to
             `dofjax.defocus` ({"hidden": True}: the hidden-background estimate of single-layer
-            input, ~1.5x its cost per step). The defaults are `dofjax.defocus`'s ("sliced", no
-            hidden-background estimate), so a target made with a bare `dofjax.defocus(...)` is
-            the model a bare fit fits; pass the same options to both. {"method": "exact"}
+            input, a second layer's cost per step). The defaults are `dofjax.defocus`'s
+            ("sliced", no hidden-background estimate), so a target made with a bare
+            `dofjax.defocus(...)` is the model a bare fit fits; pass the same options to both.
+            {"method": "exact"}
             polishes only: the multi-start, scan and screen run with "sliced". For photographs
             (or lens-sampled targets) of an RGBD with peeled layers, {"method": "lens"} decides
             occlusion per lens ray, closest to a real lens behind blurred edges; it polishes
-            only, like "exact", and {"method": "lens", "samples": 64} polishes ~3.5x faster.
+            only, like "exact", and {"method": "lens", "samples": 64} polishes several times
+            faster.
             {"method": "sliced", "subapertures": 4} polishes with the sliced model's
             sub-apertures (closer to a lens behind blurred edges) after a plain sliced search.
         model: a forward model `model(rgb, depth, camera) -> (H, W, 3)`, pure and jittable, used

@@ -1,81 +1,12 @@
-"""Sliced defocus: docs/conventions.md, section 3's scatter model, built for speed, fast compiles
-and fitting.
+"""Method "sliced", the default defocus: the scatter model built for speed, fast compiles and
+fitting.
 
-1. Each source pixel (of the image, of every peeled layer, and of the mirror layer) has a signed
-   CoC c = A k (1/z - 1/d). The signed level magnitudes `_kernels.MAGNITUDES` up to the window
-   give depth slices ordered front to back (+window ... 0 ... -window). A source is split between
-   the two slices that bracket it with weights linear in q = sign(c) c^2, so the blend of the two
-   soft kernels has the second moment of the source's own kernel (radius sqrt(c^2 + R0^2)) and
-   the weights are smooth in c at c = 0 (the gradient exists on the focal plane).
-2. Each slice holds premultiplied colour and front/back coverage and is convolved with its level's
-   soft kernel (normalised by its discrete sum: energy is conserved) by shifted sums, channel by
-   channel, from sources padded once by the widest blur's border (no per-slice concatenation or
-   padding: at 512 x 512 those made the forward pass 1.4-1.8x slower). A level of
-   magnitude m is blurred at 1/s of the resolution (s the largest power of two with
-   m / s >= MIN_LOW_RADIUS): box-averaged, convolved with the kernel whose second moment plus
-   what the resampling adds equals the full-resolution kernel's, and bilinearly upsampled. So
-   every disc kernel is at most 7 x 7 taps and the cost per slice falls as 1/s^2: a radius-16
-   disc costs what a radius-2 disc does at 1/64 of the pixels. Only levels |m| <= 3 run at full
-   resolution: a full-resolution slice costs ~6 ms at 512 x 512 in memory traffic alone. A
-   reduced-resolution run reads the sources as their 2 x 2 polyphase components (`_phases`,
-   split once for all of them), so its slices are built from contiguous arrays (strided reads
-   cost the CPU ~2x per slice; the 512 x 512 forward pass 4-6 % faster, the same numbers).
-3. Slices are composited front to back, one `lax.scan` per run of levels that share a resolution
-   and blur method (compiles in seconds; reverse mode stores one carry per slice; a
-   `lax.switch` on the level's kernel inside the scan pays each level only its own taps; the
-   kernels are host constants, so a disc's zero corner taps are skipped and its equal taps
-   share one multiplication; a `lax.cond` skips the slices that no source reaches, found from
-   the range of the sources' q before the scans (`_reached`), so a camera whose CoCs span a
-   few of the window's levels pays for those few). Slice p is
-   attenuated by the blurred coverage of every slice nearer than p - 1, and by slice p - 1's
-   sources in front of level p - 1 fully and those a fraction t of the way from level p - 1 to
-   p by (1 - t): occlusion is continuous in c (a source crossing a level never switches its
-   occlusion of the next slice on or off), and a source at level p never hides its own share of
-   slice p. The coarse near runs hand their state
-   (colour, coverage, occluders) to the next finer run by one upsampling; everything behind the
-   full-resolution runs is composited at its own resolutions, upsampled once and seen through the
-   sharp runs' transmittance at full resolution (so a blurred background never leaks over a sharp
-   silhouette). The sum is divided by min(coverage, 1): where coverage is below 1 (what a blurred
-   foreground uncovers but no layer supplies, or the image border) the visible colours are
-   renormalised; elsewhere the scatter's energy is untouched.
-4. Peeled layers (`render(..., layers=K)`) add the surfaces a blurred foreground can uncover;
-   for single-layer input, `dofjax.defocus(..., hidden=True)` passes an estimate of the hidden
-   background made from the images alone (`_hidden.hidden_layers`) as such a layer. The mirror
-   layer's reflected radiance is blurred at its virtual depth in the same slices and added on
-   top without occlusion (the mirror surface that carries it must not hide it). With the
-   mirrors' footprint (`Mirror`) the footprint is instead a fourth channel at the visible
-   surface's depth, occluded like the colour, that confines the virtual scene (`_defocus`).
-
-5. With `cell` = (k, K) every level's kernel is restricted to sector k of K of the aperture
-   (`_kernels.cell_kernel`, normalised on its own): the image a part of the lens sees, one term
-   of `dofjax.defocus(..., subapertures=K)`, which averages the K images by the sectors' areas.
-   `sectors=K` gives all K images from one pass: each slice (the same for every sector) is
-   built once, then blurred by each sector's kernel and composited into that sector's state
-   (the sectors' kernels are zero-padded to a common size per level, `_sector_plans`, so they
-   share runs and borders; `cell=(k, K)` uses the same padded kernels). A sector is narrower
-   than its disc, so its levels go to reduced resolution at `CELL_RADIUS_FACTOR` times the
-   `min_radius` (at 1/s of the resolution the box average and the upsampling blur a wedge
-   towards a disc, and the coarse kernel, sized for the second moment, shrinks towards the
-   aperture's centre: a quarter disc kept 75-92 % of its centroid's offset, i.e. of the
-   parallax that part of the lens sees).
-
-Kernels depend only on static choices (window, shape, cell), so derivatives w.r.t. focus and
-aperture flow only through the slice weights. `sliced_defocus(...)` is pure and jittable (the
-window is static); `dofjax.defocus(..., method="sliced")` is the validated entry point. Its
-derivatives
-w.r.t. (focus, aperture):
-- forward mode (`jax.jacfwd`, `jax.jvp`, the fitter's Jacobian): `sliced_defocus_jacobian`, the
-  same pass carrying two tangents beside the image (2.9x a forward pass at 512 x 512 with
-  `tune_host_memory`, 2.9-3.2x without, where every call faults in its 55 MiB of temporaries;
-  `jax.jacfwd` through the plain model took ~4.4x);
-- reverse mode (`jax.grad`, `jax.vjp`): `sliced_defocus_adjoint`, the transpose of those
-  tangent lanes written out (`_composite_adjoint`: the scans run back to front, each blur by
-  its point-reflected kernel, each resampling by its transpose) from the value lane's per-slice
-  residuals (what hid the slice, its blurred colour and coverage): the value pass (~1.5x a
-  forward pass: it stores the residuals) plus ~1.3-1.4x, 2.75x in all at 512 x 512 with
-  `tune_host_memory` (2.9-3.2x without; 2.4x at 256 x 256, where no call faults in fresh
-  memory) instead of J's cost plus the contraction (`benchmarks/README.md`, "Defocus speed").
-  `_autodiff.dense_jacobian` routes the two modes (a primitive whose transpose is the adjoint).
+Depth slices two per octave of |c|, large ones blurred at reduced resolution by small kernels,
+composited front to back in one `lax.scan` per run of levels; sub-aperture sectors; and the
+written-out derivatives with respect to (focus, aperture): `sliced_defocus_jacobian` (forward
+mode) and `sliced_defocus_adjoint` (reverse mode), routed by `_autodiff.dense_jacobian`.
+`dofjax.defocus(..., method="sliced")` is the validated entry point. How and why:
+docs/defocus.md, "Method "sliced"" and "The sliced method, step by step".
 """
 
 from __future__ import annotations
@@ -95,20 +26,20 @@ from ._rgbd import Edges, Layers
 
 # Smallest kernel radius (px, at the reduced resolution) of a level: a level of magnitude m is
 # blurred at 1/s of the resolution, s the largest power of two with m / s >= MIN_LOW_RADIUS.
-# 2 rather than 3: the 512 x 512 forward pass is 1.55x faster (9 -> 7 full-resolution slices) and
-# RMSE against the lens reference (quads, 128 px, max |c| 12, 3 layers) moves 0.0131 -> 0.0133.
+# 2 rather than 3: two fewer full-resolution slices, a faster forward pass for an error against
+# the lens reference that barely moves (docs/defocus.md, "The sliced method, step by step").
 MIN_LOW_RADIUS = 2.0
 # Kernels of at most SHIFTED_TAPS non-zero taps are applied by shifted sums (one fused pass per
-# kernel size; a zero tap costs nothing), larger ones by FFT products: at 512 x 512 on the five
-# blurred channels a 9 x 9 disc costs 7 ms by shifted sums, an FFT pair 17 ms whatever the
-# kernel. 81: every disc kernel up to 9 x 9 (|m| <= 4), none larger; a sector's kernel has
-# about 1/K of its disc's taps, so a quarter of a 13 x 13 disc is summed (`CELL_RADIUS_FACTOR`).
+# kernel size; a zero tap costs nothing), larger ones by FFT products: a 9 x 9 disc by shifted
+# sums costs less than an FFT pair, which costs the same whatever the kernel. 81: every disc
+# kernel up to 9 x 9 (|m| <= 4), none larger; a sector's kernel has about 1/K of its disc's
+# taps, so a quarter of a 13 x 13 disc is summed (`CELL_RADIUS_FACTOR`).
 SHIFTED_TAPS = 81
 # A sub-aperture's (sector's) level goes to reduced resolution at CELL_RADIUS_FACTOR times the
 # whole aperture's `min_radius`: a sector is narrower than its disc, and at 1/s of the
 # resolution its wedge shape (its parallax: the centroid off the aperture's centre) is lost
-# sooner. With 4 sectors, quads 128 px, max |c| 12, 3 layers: RMSE 0.0086 -> 0.0077 for ~1.3x the
-# 512 x 512 forward pass (8 sectors: 0.0080 -> 0.0070; benchmarks/README.md, session 32).
+# sooner; 2 lowers the error against the lens reference for a modest cost in time
+# (docs/defocus.md, "The sliced method, step by step").
 CELL_RADIUS_FACTOR = 2.0
 
 
@@ -236,10 +167,9 @@ def _upsample(x, s: int):
     """Bilinear s-fold upsampling of the last two axes (the inverse grid of `_downsample`; the
     mean is kept; edges replicated). Fine sample s i + k sits at coarse i + d_k,
     d_k = (k + 1/2) / s - 1/2, and blends sample i with its neighbour on d_k's side; the s phases
-    are interleaved by a reshape (no gather: ~3x faster on the CPU). Both axes in one pass (the
-    s x s phases as four-tap blends of one edge-padded input) made the 512 x 512 forward pass
-    0.87x the time before the polyphase sources were shared and 0.99x after, for ~20 % longer
-    compiles (benchmarks/README.md, "Defocus speed", session 39)."""
+    are interleaved by a reshape (no gather, which is slower on the CPU). One axis at a time:
+    both axes in one pass (four-tap blends of one edge-padded input) compiles longer and is no
+    faster (docs/what_we_tried.md, "Speed")."""
     if s == 1:
         return x
     for axis in (x.ndim - 2, x.ndim - 1):
@@ -258,7 +188,7 @@ def _upsample(x, s: int):
 
 def _window(x, a: int, b: int, h: int, w: int):
     """x[..., a: a + h, b: b + w] as one `lax.slice` (the same program; NumPy-style indexing
-    costs ~10x the tracing time, and the blurs take thousands of these)."""
+    costs far more tracing time, and the blurs take thousands of these)."""
     start = (0,) * (x.ndim - 2) + (a, b)
     return jax.lax.slice(x, start, x.shape[:-2] + (a + h, b + w))
 
@@ -351,8 +281,8 @@ def _level_index_q(q, levels):
     # The levels are symmetric about 0 (index n): index = n - sign(q) g(|q|), g a sum of one
     # clipped ramp in |q| per bracket of magnitudes, the first bracket's written as a ramp in q
     # (so the slope at q = 0 is right). Elementwise, fused into the passes that use it:
-    # jnp.interp's binary search and gathers cost ~9 ms per 512 x 512 defocus with one hidden
-    # layer, a ramp per signed bracket ~5 ms, this half of that.
+    # cheaper than jnp.interp's binary search and gathers, and than a ramp per signed
+    # bracket.
     n = len(levels) // 2
     qs = (levels[n:] * levels[n:]).tolist()  # 0, 1, 4, ...: Python floats keep q's dtype
     a = jnp.abs(q)
@@ -504,7 +434,7 @@ def _source_fields(rgb, depth, layers, camera, levels, reflection, reflection_de
     finite), the rest by zeros, and q and the coverage are zeroed outside the image by a
     constant mask. Padded after the fact, the fields' arithmetic fused into the pad, which
     XLA's CPU backend does not vectorise: the peeled layers' gates (16 clipped ramps per pixel
-    and source) cost ~6 ms at 512 x 512 that way."""
+    and source) cost a noticeable share of a 512 x 512 pass that way."""
     pad = lay.pad_hw
     rgb_p = pad(rgb, rgb.ndim - 3)
     depth_p = pad(depth, depth.ndim - 2, "edge")
@@ -560,7 +490,7 @@ def sliced_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, ro
     it), one term of `dofjax.defocus(..., subapertures=K)`.
     `sectors`: K (static): the images through each of the K sectors, (K, H, W, C), from one pass
     that builds every slice once (what `cell=(k, K)` gives for each k, in ~2/3 the time of K
-    such calls at 512 x 512: benchmarks/README.md).
+    such calls).
     """
     levels = _levels(float(window))
     lay = _lay(window, blades, rotation, ratio, min_radius, depth, cell, sectors)
@@ -596,8 +526,8 @@ def sliced_defocus_jacobian(rgb, depth, camera: Camera, *, window: float, blades
     (out, (d out / d focus, d out / d aperture)), three (H, W, 3) images from one pass that
     carries both tangents beside the image.
 
-    Forward mode written out rather than left to `jax.jacfwd` (which took ~4.4x a forward pass
-    at 512 x 512, this 3.04-3.12x in `benchmarks/defocus.py`): the slice weights' derivatives
+    Forward mode written out rather than left to `jax.jacfwd` (slower; `python
+    benchmarks/defocus.py` times this one): the slice weights' derivatives
     are the hats' constant slopes (`_level_slopes`, from the weights themselves) times each
     source's dq, which is a function of q (no tangent images are built or read), and the
     tangents run as separate arrays through the same blurs and compositing (a batched tangent
@@ -639,8 +569,7 @@ def sliced_defocus_adjoint(res, ct, *, window: float, blades=None, rotation=0.0,
     """J^T ct, for J the (focus, aperture) Jacobian of `sliced_defocus_jacobian` and ct an
     (H, W, 3) cotangent of its image: the reverse-mode gradient, from the residuals `res` of
     `sliced_defocus_jacobian(..., residuals=True)` (the same static arguments), by one pass of
-    `_composite_adjoint` (~1.25x a forward pass at 512 x 512) instead of the two tangent lanes
-    (~2x).
+    `_composite_adjoint` (about a forward pass) instead of the two tangent lanes (about two).
 
     The transpose of exactly the tangents that pass writes out (the same masks and slopes):
     (2,) array [d/d focus, d/d aperture] of sum(ct * out). With `sectors`, ct is (K, H, W, C)
@@ -684,7 +613,7 @@ class _Layout(NamedTuple):
     the runs (one `lax.scan` each), each run's blur method and border (coarse px;
     FFT runs pad their own grid), the sources' zero border at full resolution that covers every
     run's (each slice is built padded, so no blur pads its input; a per-run pad of the sources
-    cost ~3 ms a run in forward mode), and the image padded to a multiple of the coarsest
+    costs time in every run), and the image padded to a multiple of the coarsest
     divisor."""
 
     levels: np.ndarray
@@ -909,12 +838,11 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
         # the sources with this run's border; at reduced resolution as their 2 x 2 polyphase
         # components (`_phases`): every level's slice is then built from contiguous arrays and
         # the first halving of its box average is a sum of the four (strided reads of the
-        # full-resolution fields cost ~2x per level on the CPU). The phases of the whole padded
-        # frame are made once for every reduced-resolution run, each run cropping its border as
-        # it builds a slice: per-run copies (the near and far runs of one resolution shared
-        # theirs) were made before the full-resolution run and held through it (at 512 x 512
-        # the forward pass with a hidden layer had 33.7 MiB of temporaries, over glibc's 32 MiB
-        # mmap ceiling, so every call faulted them in: 25.2 MiB now, 0.79x the time)
+        # full-resolution fields cost about twice as much per level on the CPU). The phases of
+        # the whole padded frame are made once for every reduced-resolution run, each run
+        # cropping its border as it builds a slice: per-run copies would be held through the
+        # full-resolution run and push a 512 x 512 pass with a hidden layer over glibc's 32 MiB
+        # mmap threshold (docs/performance.md), so that every call faults its temporaries in
         if s > 1:  # (the run's view starts at an even offset: `_layout`'s border_px is even)
             src, crop = all_phases(), lay.run_view(i_run) // 2
         else:
@@ -928,8 +856,8 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
         def slice_parts(colour_p, weight, occ):
             # the channels are built and blurred as separate arrays, the sums over the few
             # sources written out: a concatenated (5, H, W) slice compiled on XLA CPU to a
-            # fusion 4-5x slower than the same arithmetic per channel (and the fused
-            # broadcast-multiply-reduce over the source axis once came out with blue = red)
+            # fusion several times slower than the same arithmetic per channel (and a fused
+            # broadcast-multiply-reduce over the source axis can come out with blue = red)
             return [sum(weight[k] * colour_p[k] for k in each), sum(weight[k] for k in each),
                     sum(occ[k] for k in each)]
 
@@ -957,7 +885,7 @@ def _composite(colour, q, alpha, refl, q_r, tangents, lay, residuals: bool = Fal
             colour_p, q_p, alpha_p, d_alpha_p, refl_p, q_r_p, cover_p = src
             # source by source, as (H, W) arrays summed written out: on the stacked (S, H, W)
             # sources XLA CPU compiled the weights into fusions several times slower per
-            # element for S > 1 (a second layer made the 512 x 512 forward pass 2.2x slower)
+            # element for S > 1 (a second layer would more than double the forward pass)
             fw, bw = zip(*(_level_weights(q_p[k], q3, first, last) for k in each))
             front = [fw[k] * alpha_p[k] for k in each]
             back = [bw[k] * alpha_p[k] for k in each]
@@ -1174,7 +1102,7 @@ def _upsample_transpose(g, s: int):
     """Transpose of `_upsample` by s (of the last two axes): fine sample s i + k gave weight
     1 - |d_k| to coarse i and |d_k| to its neighbour on d_k's side (the edge sample itself at
     the ends), so coarse j collects its own phases and its neighbours' (slices and adds: the
-    transpose JAX derives from the forward's pads is ~3x slower)."""
+    transpose JAX derives from the forward's pads is slower)."""
     if s == 1:
         return g
     for axis in (g.ndim - 2, g.ndim - 1):
@@ -1203,8 +1131,7 @@ def _upsample_transpose(g, s: int):
 
 def _channel_sum(x):
     """Sum over the leading (colour) axis, written out: XLA CPU hands a fused reduction over a
-    leading axis of 3 to a library kernel ~10x slower than the adds (the adjoint took 150 ms
-    instead of ~57 at 512 x 512)."""
+    leading axis of 3 to a library kernel much slower than the adds."""
     return functools.reduce(jnp.add, [x[i] for i in range(x.shape[0])])
 
 
@@ -1220,7 +1147,7 @@ def _composite_adjoint(res, ct, *, window, blades, rotation, ratio, min_radius, 
     through the fine ones, each run's slices back to front (a reverse `lax.scan` carrying the
     cotangents of (acc_rgb, acc_cov, hiding, hiding_next)), the blurs by their transposes (the
     shifted sums with the point-reflected kernel; FFT runs by `jax.linear_transpose`), the box
-    averages and upsamplings by theirs. Costs ~1.25x a forward pass at 512 x 512: per slice it
+    averages and upsamplings by theirs. Costs about a forward pass: per slice it
     reads the stored (hiding, blurred colour and coverage) and blurs five cotangent channels.
     With `sectors` = K (`_composite` over K sector layouts): `res` is the list of the sectors'
     residuals and ct is (K, H, W, C); the sectors' cotangent states run through one scan, and
