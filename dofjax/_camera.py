@@ -243,8 +243,7 @@ class Camera(eqx.Module):
         scale). Render the sharp input with it and defocus it with this camera and
         `margin=margin` (`dofjax.defocus` crops the result to the frame): the blur then gathers
         what lies just beyond the frame, as a lens does. A margin of the largest |CoC| + 2 px is
-        enough (on the quads scene it moves the lens method's RMSE against the lens-sampling
-        reference from 0.0088 to 0.0054; benchmarks/README.md).
+        enough (docs/defocus.md, "Why the options exist").
         """
         margin = check_margin("Camera.padded", margin)
         if margin == 0:

@@ -1,25 +1,10 @@
-"""Exact defocus: every source spread by its own soft kernel, composited by depth slices.
+"""Method "exact": every source spread by its own soft kernel, composited by depth slices.
 
-The scatter model of `docs/defocus.md`: a source with signed CoC c spreads over the soft
-aperture kernel of radius rho = sqrt(c^2 + R0^2), normalised by its discrete sum, and depth
-slices composite the spread sources front to back. This module makes the kernel exact for every
-c, so a constant-depth image is the exact kernel convolution (to float rounding near the focal
-plane, to the node blend's few 1e-4 beyond it):
-
-- Near the focal plane (|c| <= `GATHER_COC`) a slice spreads each source by its own kernel, tap
-  by tap, with weights clip(rho + 1/2 - f(tap), 0, 1) / N(rho) computed per source (`_gather`).
-- Beyond, slices sit at node radii a few percent apart (`NODE_STEP`) and a source between two
-  nodes is split so the blend of their kernels is linear in the *unnormalised* kernel, which is
-  exact wherever no tap changes slope inside the bracket and close elsewhere (`_node_weight`).
-  Each node slice is one FFT product at full resolution.
-
-Occlusion follows `_sliced.py`, with its levels (two per octave) as occlusion groups: a group
-is hidden by every group nearer than the previous one and by the previous group's last slice
-(its sources in front of that level fully, those behind by their weight), and the slices of one
-group do not hide each other, so a surface receding across a group's dense node slices is not
-ordered against itself. The sum is renormalised by min(coverage, 1), so peeled layers,
-silhouette shares and mirrors work alike.
-Derivatives are JAX's own (forward and reverse mode through the scans).
+Near the focal plane (|c| <= `GATHER_COC`) each source is spread tap by tap with its own kernel
+(`_gather`); beyond, node slices a few percent apart in radius, each one FFT product, share a
+source by a blend linear in the unnormalised kernel (`_node_weight`). Occlusion is decided
+between the sliced method's levels as groups. Derivatives are JAX's own. How and why:
+docs/defocus.md, "Method "exact"".
 """
 
 from __future__ import annotations

@@ -1,24 +1,10 @@
 """Keep large XLA CPU programs' temporary memory between calls (opt-in, like the compile cache).
 
-XLA's CPU runtime allocates a program's temporaries as one buffer per call (`malloc`), freed
-when the call ends. glibc serves a request of more than 32 MiB (the largest mmap threshold it
-accepts) by a fresh `mmap` and unmaps it on `free`, so every call of such a program touches
-new pages and the kernel takes a page fault and zeroes each 4 KiB of them. At 512 x 512 that
-is dofjax's derivative programs (`jax.jacfwd` 55 MiB of temporaries, 14k faults per call;
-`jax.grad` 77 MiB, 20k), 10-15 % of their run time (benchmarks/README.md, "Defocus speed",
-sessions 34 and 39; the forward passes, with a hidden layer too, stay below 32 MiB).
-
-`tune_host_memory` removes that cost in two steps: XLA splits the temporaries into heaps of at
-most `HEAP_BYTES` (`--xla_multiheap_size_constraint_per_heap`, read when JAX starts its CPU
-backend), and glibc keeps freed memory for reuse (`mallopt`: allocations up to 32 MiB from its
-heaps, none of it given back to the kernel below 1 GiB free). The process then keeps up to
-that much memory it no longer uses, as a caching allocator (jemalloc, tcmalloc) would. (One
-malloc arena for all threads also removed the few faults left in worker threads' arenas, but
-LLVM's compile threads then queued on it: +3.5 s compile for a 512 x 512 gradient.) Results
-are unchanged: only where buffers live changes. A single buffer larger than `HEAP_BYTES` (at
-1024 x 1024, a run's stacked slices) still gets a heap of its own, mapped afresh as before,
-and XLA logs a warning about it when it compiles ("Alloc buffer size ... larger than the
-per-heap size limit"). Nothing in dofjax calls it: the allocator is the process owner's choice.
+XLA's CPU runtime allocates a program's temporaries as one buffer per call; above glibc's 32 MiB
+mmap threshold each call maps fresh pages and the kernel faults in and zeroes them.
+`tune_host_memory` caps XLA's heaps at `HEAP_BYTES` and has glibc keep freed memory for reuse.
+Results are unchanged; nothing in dofjax calls it (the allocator is the process owner's
+choice). Why and when it helps: docs/performance.md, "Large images on Linux".
 """
 
 from __future__ import annotations

@@ -1,65 +1,10 @@
-"""Lens-sampled defocus (`method="lens"`): occlusion decided per lens point, not per blurred slice.
+"""Method "lens": defocus with occlusion decided per lens point, not per blurred slice.
 
-The scatter methods (`pyramid`, `sliced`) blur each depth slice's colour and coverage and
-composite the blurred slices with additive coverage: the fraction of a pixel's lens that sees a
-background point through a blurred foreground edge is replaced by the product of two averages over
-the whole lens. Behind a textured edge that is the error that remains (two thirds of the squared
-error on the quads benchmark scene, `benchmarks/README.md`). Here the lens is sampled instead, and
-every sample is its own pinhole-like ray through the layered scene:
-
-1. Sources (the visible image, peeled layers k >= 1 or, for single-layer RGB-D, the
-   hidden-background estimate of `_hidden.hidden_layer`) have signed CoCs c (docs/conventions.md,
-   section 1)
-   and are split between the two slices of a uniform grid of levels (`spacing` px apart, from
-   +window to -window, front to back) that bracket them, with weights linear in q = c |c| (so
-   the blend of the two sheets' blurs has the source's own second moment). A slice is a thin
-   sheet at one CoC: premultiplied colour and coverage of the sources in front of its level (the
-   bracket towards the previous level) and of those behind it, kept apart.
-2. For a lens point l (unit aperture, image right/up axes; `_sampling.aperture_points`, the points
-   `render_reference` uses), the ray through pixel x meets the sheet of level c at x + c l (a
-   source at z lands at x_pinhole - c l; docs/conventions.md, section 4): each sheet is read there
-   by
-   Lanczos-3 interpolation (6 x 6 taps, normalised), front to back. Every interpolator blurs
-   what it reads at fractional offsets, and a sub-pixel CoC is blurred mostly by that: bilinear
-   reads add ~0.15 px^2 per axis, more than a |c| = 0.5 px source's own blur (Catmull-Rom
-   reads brought the data_gen lens-reference cases' model-minus-reference rms from 0.026 to
-   0.022 median). On a textured plane at |c| = 0.46 px (lens-reference case 0 at 256 x 256, 39 %
-   of its pixels) Catmull-Rom still blurred ~35 % more than the reference (by the response to
-   the image's Laplacian), which moved the fitted focus distance by -4 %; Lanczos-3 blurs ~2 %
-   more, at ~1.3x the time of Catmull-Rom. (A prefiltered quintic B-spline did as well, but its
-   infinite support made the frame's edge ring ~1e-4 into the image, breaking exact energy
-   conservation.) A source in front of level p
-   is hidden by the coverage, met along the ray, of everything in front of level p - 1; one
-   behind level p by everything in front of level p (the slices before p and the front part of
-   p). So a source never hides its own share of a neighbouring slice, and a surface one bracket
-   behind another is hidden by it. The coverages are summed and clipped to [0, 1], and a ray is
-   full once its coverage reaches 1 (surfaces that share a bracket, which the rules cannot
-   order, are then seen front first rather than added).
-3. The pixel averages its rays over `samples` deterministic lens points (a Fibonacci lattice in the
-   unit square mapped onto the aperture: disc, polygon or anamorphic ellipse). Where the rays'
-   total coverage is below 1 (what no layer supplies, or the frame border) the visible colours are
-   renormalised; elsewhere the scatter's energy is untouched (the reads' weights sum to 1, so a
-   constant-depth image keeps its total away from the borders).
-4. The mirror layer's reflected radiance is read from its own sheets at its virtual depth and
-   added without occlusion. With the mirrors' footprint (`Mirror`), each ray instead reads the
-   footprint m from sheets at the visible surface's depth, occluded like that surface's colour
-   (a blurred foreground in front of the mirror blocks the ray), and traces the virtual scene (the
-   mirror's radiance at its virtual depth, a single-layer RGB-D with its own slices, occlusion
-   and hidden-background estimate) like the surfaces; the virtual colour is renormalised over
-   the rays weighted by their m and scaled by the mean m: each ray's own product (through the
-   mirror or not), where the scatter methods multiply two averages over the lens.
-
-Hidden surfaces enter only where they lie at least one level behind the visible one (ramped
-over a second, continuous in focus and aperture): nearer, the two would share a bracket and the
-visible one would not hide the hidden one.
-
-Cost: samples x slices interpolated reads (6 + 6 separable taps) of the sheet stack (8 channels,
-11 with a mirror); slices without a source are skipped. The slow, accurate method: the quads
-accuracy benchmark (128 x 96, max |c| 12 px, 3 layers) runs in ~2 s; at 256 x 256 with |c| up to
-8 px on every slice a forward pass takes 30 s, ~3000x the sliced method, and `jacfwd`/`grad`
-4.8x/5.4x that (benchmarks/results/defocus_lens_speed.md, 2 loaded cores). Derivatives w.r.t.
-focus and aperture flow through the slice weights only (sheet positions are constants), by plain
-autodiff; the lens loop is checkpointed so reverse mode stores one carry per lens point.
+The sources are split between thin sheets at a uniform grid of CoCs; every pixel averages
+`samples` rays through points of the aperture, each reading the sheets front to back by
+Lanczos-3 interpolation and hidden by the coverage it has met. The slowest method and the
+closest to the lens-sampling reference behind blurred edges; derivatives by plain autodiff.
+How and why: docs/defocus.md, "Method "lens"" and "The lens method, step by step".
 """
 
 from __future__ import annotations
@@ -77,9 +22,9 @@ from ._numerics import safe_div
 from ._sampling import aperture_points
 from ._sliced import coverages, raw_sources
 
-# Lens points per pixel and level spacing, chosen on the quads benchmark with the first (bilinear)
-# version: 128 -> 256 points moved RMSE 0.0059 -> 0.0058; spacing 1 px gave 0.0069, 0.25 px 0.0058
-# at 3x the time (benchmarks/README.md, "The lens method").
+# Lens points per pixel and level spacing: more points or a finer spacing barely lower the error
+# against the lens reference, for proportionally more time (docs/defocus.md, "The lens method,
+# step by step").
 LENS_SAMPLES = 256
 SLICE_SPACING = 0.5
 
@@ -292,8 +237,8 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
                 room = jnp.clip(1.0 - cover, 0.0, 1.0)
                 # min(1, room / seen), with the denominator kept above eps: the reads'
                 # negative lobes leave traces of ~1e-20 coverage, and room / seen there had a
-                # tangent of room dseen / seen^2, which overflowed to inf and NaN in float32 (a
-                # Lanczos-read Jacobian with NaN pixels, lens-reference case 3). Where seen <=
+                # tangent of room dseen / seen^2, which overflows to inf and NaN in float32 (a
+                # Lanczos-read Jacobian with NaN pixels). Where seen <=
                 # eps this moves less than eps of coverage. A `where`, not `minimum`: at seen
                 # == room (an opaque first surface, 1 == 1) the tangent must be 0, not
                 # minimum's half of each side.

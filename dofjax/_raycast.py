@@ -1,24 +1,9 @@
 """The sharp ray caster: Phong shading, hard shadows, mirrors, z-depth and depth peeling.
 
 `trace` shades arbitrary rays (the lens-sampling reference uses it); `render` builds pinhole rays
-through the pixels of a `Camera` and is itself built on `trace`'s shading path, so the two never
-disagree. Shading is exactly the Phong model documented on `dofjax.Materials` (docs/conventions.md
-sections 1-3).
-
-What gets compiled depends only on the scene's static structure: absent primitive types trace no
-intersection code, a scene without lights traces no shadow rays, `max_bounces == 0` traces no
-secondary rays (and `render` builds no `RGBD.mirror`), and texture lookups exist only when
-`scene.textures` is not None. All values (positions, colours, focus, aperture) are array leaves,
-so changing them never recompiles.
-
-Memory: rays are processed in chunks (`lax.map`) sized so that one chunk's ray x primitive arrays
-stay around `_CHUNK_ELEMENTS` entries, whatever the image size and primitive count.
-
-Meshes: `render`, `trace` and `render_reference` put a scene's triangles in a bounding volume
-hierarchy (`_bvh`, built on the host, cached) when there are at least `_bvh.MIN_TRIANGLES` of
-them and their positions are concrete; primary, shadow, mirror and peeling rays then walk it
-instead of testing every triangle, with the same hits. Traced positions (differentiating
-through the vertices) keep the all-pairs test.
+through the pixels of a `Camera` on `trace`'s shading path, so the two never disagree. Shading:
+the Phong model documented on `dofjax.Materials` (docs/conventions.md, sections 1-3). What gets
+compiled, memory and meshes: docs/performance.md, "The ray caster".
 """
 
 from __future__ import annotations
@@ -662,8 +647,8 @@ def _nearest_seed(seed):
     (H, W)), each pixel taking the nearest of the seeds it and its 8 neighbours at +-step hold, and
     one more step-1 round (JFA+1), which removes most of the plain scheme's rare misassignments.
     Ties go to the first candidate (fixed order): deterministic. The rounds run as one `lax.scan`:
-    unrolled, XLA fused each round's shifted reads into the next round's (measured: seconds more
-    compile time and ~10 ms more per 128 x 96 render, against ~1 ms now).
+    unrolled, XLA fuses each round's shifted reads into the next round's, which compiles longer
+    and runs slower.
     """
     h, w = seed.shape
     rows = jnp.arange(h, dtype=jnp.int32)[:, None]
@@ -888,9 +873,8 @@ def render(scene: Scene, camera: Camera, *, spp: int = 1, layers: int | None = N
     its surfaces: the share of samples whose first hit lies in front of the centre's surface
     (their mean colour and depth), and the share that sees peeled layer 1's surface beside it; the
     defocus blurs each share at its own depth instead of the pixel's mixed colour at the centre's
-    (on quads, 128 px, max |c| 12, 3 layers: sliced RMSE 0.0110 -> 0.0104, 8 sub-apertures
-    0.0070 -> 0.0058, lens 0.0055 -> 0.0036; benchmarks/README.md). Pixels with a mirror sample
-    are not split.
+    (docs/defocus.md, "Inputs that every method uses"; `python benchmarks/defocus_accuracy.py`
+    measures what it buys). Pixels with a mirror sample are not split.
 
     Raises:
         ValueError: spp or layers not a positive integer.
