@@ -102,7 +102,7 @@ def speed(size: int, max_coc: float, repeats: int, dtype, method="pyramid"):
 def _minor_faults() -> int:
     """The process's minor page faults so far (0 where `resource` is missing): a program whose
     temporaries exceed glibc's 32 MiB mmap ceiling faults in fresh pages on every call
-    (benchmarks/README.md, "Defocus speed")."""
+    (docs/performance.md, "Large images on Linux")."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt if resource else 0
 
 

@@ -1,7 +1,7 @@
 """Accuracy of dofjax.defocus against the lens-sampling reference, with an error decomposition.
 
     python benchmarks/defocus_accuracy.py                          # all scenes, 128 px wide
-    python benchmarks/defocus_accuracy.py --scenes quads           # the issue-3 scene only
+    python benchmarks/defocus_accuracy.py --scenes quads           # the quads scene only
     python benchmarks/defocus_accuracy.py --size 64 --spp 1024 --sharp-spp 1,4   # quick look
 
 For every scene with a camera (examples/*.json, benchmarks/scenes/*.json), the camera is resized to
@@ -18,9 +18,8 @@ defocus, and a changed renderer re-renders.
 
 Compared, for every sharp-input spp in --sharp-spp (the sharp render box-filters each pixel over
 spp stratified, jittered positions, `_sampling.pixel_positions`, the ones the reference uses;
-spp = 1 is the pixel centre; references cached before session 17 used a regular grid instead,
-which does not matter at their sample counts): both defocus methods, single-layer RGB-D and
---layers peeled layers, and the seed's algorithm (Yu 2004, the "before" row). Metrics on
+spp = 1 is the pixel centre): both defocus methods, single-layer RGB-D and --layers peeled
+layers, and the baseline gather algorithm of Yu 2004 (the "before" row). Metrics on
 colours clipped to [0, 1]: RMSE, PSNR, SSIM (scikit-image), RMSE with the reference noise
 removed in quadrature, and RMSE split by region:
 
@@ -276,7 +275,7 @@ def guarded_variants(methods, layers, sharp, cam, margin, tag):
                                                   **method_options(m)))))
             if sharp.layers is not None and sharp.layers.edges is not None:
                 # the same without `Edges` (silhouette pixels blurred whole at their centre's
-                # depth, as before session 37)
+                # depth): what the split buys
                 plain = unsplit(sharp)
                 out.append((f"{method}, {layers} layers, {tag}, unsplit", dict(
                     f=lambda m=method: dofjax.defocus(plain, cam, margin=margin,
@@ -415,10 +414,9 @@ def main():
         if r is not None:
             results.append(r)
         # every scene compiles its own programs (its shapes and windows); dropping them keeps a
-        # run over all scenes within the process's memory maps (session 37's run with four
-        # methods failed at the 11th scene, "LLVM compilation error: Cannot allocate memory"
-        # with 19 GiB free: most likely Linux's limit of 65530 maps per process; one scene
-        # into a run the process held ~8000)
+        # run over all scenes within the process's memory maps (without it a run with four
+        # methods ends in "LLVM compilation error: Cannot allocate memory" with memory free:
+        # most likely Linux's limit of 65530 maps per process)
         jax.clear_caches()
     base = os.path.splitext(args.out)[0]
     os.makedirs(os.path.dirname(args.out), exist_ok=True)

@@ -1,5 +1,5 @@
 """Accuracy of dofjax.defocus by region against the lens-sampling reference, on scenes the
-methods were not tuned on (issue 46, item 2).
+methods were not tuned on.
 
     python benchmarks/defocus_regions.py            # 4 scenes x 3 cases, 256 px, 4096 spp
     python benchmarks/defocus_regions.py --quick    # smoke run: 64 px, 256 spp, one case per scene
@@ -20,8 +20,8 @@ contents, camera, spp and seed, stored with the renderer's code hash and reused 
 only if a 4-spp probe renders the same).
 
 Defocus: a sharp render with a guard band of the window + 2 px (`Camera.padded`) at
---sharp-spp, with --layers peeled layers; each --methods token (default: exact, the default
-method; sliced, sliced with 4 and 8 sub-apertures, pyramid, lens) on single-layer RGB-D with
+--sharp-spp, with --layers peeled layers; each --methods token (default: exact; sliced, the
+default method; sliced with 4 and 8 sub-apertures, pyramid, lens) on single-layer RGB-D with
 the hidden-background estimate (`hidden=True`) and on the peeled layers (`render(...,
 layers=K)`). Sub-apertures run on peeled layers only; the lens method (64 lens points)
 single-layer only, on the cases marked `lens`.

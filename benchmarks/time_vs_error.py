@@ -1,4 +1,4 @@
-"""Run time versus error: every defocus method and option, the seed's algorithm and lens
+"""Run time versus error: every defocus method and option, a baseline gather algorithm and lens
 sampling, measured against a high-spp lens-sampling ground truth (docs/conventions.md, section 4).
 
     python benchmarks/time_vs_error.py                # defocus_regions.py's 4 scenes, 256x256
@@ -15,20 +15,19 @@ given there), two settings each, at 64x64, lens sampling at 1..1024 spp. For eve
   benchmarks/results/cache/ (keyed by scene file contents, setting, size, spp and the renderer's
   code, `_common.code_hash`); for the regions suite the two halves of defocus_regions.py
   (`_common.cached_reference`, the same cache files), whose difference gives its noise;
-- methods: `dofjax.defocus` with each of --methods (regions: exact+hidden, exact (the default
-  method), sliced+hidden, sliced, sliced+sub4, sliced+sub8, pyramid+hidden, lens+hidden with 64
-  lens points; small: pyramid, sliced, sliced+hidden, lens) on a `dofjax.render` at each
-  --sharp-spp (regions 16, 64; small 4, 16) with a guard band (`Camera.padded`), single layer
-  and K peeled layers (--layers, 3; see `variants`), mirrors confined to their footprint
-  (`RGBD.mirror`); where the scene has mirrors, also the reflection blurred at the mirror's
-  depth (the seed's listed inaccuracy); the seed's algorithm (`seed_defocus`, the "before" row);
-  and `render_reference` at --spps;
+- methods: `dofjax.defocus` with each of --methods (regions: exact+hidden, exact, sliced+hidden,
+  sliced (the default method), sliced+sub4, sliced+sub8, pyramid+hidden, lens+hidden with 64 lens
+  points; small: pyramid, sliced, sliced+hidden, lens) on a `dofjax.render` at each --sharp-spp
+  (regions 16, 64; small 4, 16) with a guard band (`Camera.padded`), single layer and K peeled
+  layers (--layers, 3; see `variants`), mirrors confined to their footprint (`RGBD.mirror`); where
+  the scene has mirrors, also the reflection blurred at the mirror's depth; the baseline gather
+  algorithm (`seed_defocus`, the "before" row); and `render_reference` at --spps;
 - timing: median of --runs (>= 5) calls after one warm-up call (a call over 2 s is timed
   once), with the compile time (first call minus median) separate, `block_until_ready` on every
   result; defocus is reported alone and as a pipeline (sharp render + defocus), and forward +
   reverse-mode gradient of an image loss with respect to (focus distance, aperture) for the
   --grad-methods (default sliced and sliced+hidden: the others' gradient programs take 15 s
-  and more to compile at every setting, exact ~1 min at 256 px). Lens sampling is timed on the
+  and more to compile at every setting, exact longer). Lens sampling is timed on the
   first setting of each scene (its cost does not depend on focus or aperture), its error
   measured on every setting; its images and times are cached (`lens_rows`).
 - error: RMSE, PSNR and SSIM (scikit-image; data range 1 = white) against the truth, on linear

@@ -19,8 +19,7 @@ margin=)``, which ``fit.sweep`` and ``fit.recover`` read from the record). ``"au
 default): none for ``defocus`` targets (made from the sharp file, the frame is all they see),
 ``ceil(camera.max_coc_px) + 2`` (16 + 2 without a largest CoC) for ``reference`` targets: a
 lens-sampled target's edges gather what lies beyond the frame, and without the band a fit's
-model has nothing there (on a 128 px planes sample the frame border was most of the model's
-error at the true camera; benchmarks/README.md).
+model has nothing there (docs/defocus.md, "Why the options exist").
 """
 
 from __future__ import annotations

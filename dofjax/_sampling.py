@@ -290,9 +290,9 @@ def pixel_positions(
     drawn from a fixed key, so deterministic. spp = 1 is the pixel centre. `sampler`: as
     `pixel_sampler(spp)` gives it.
 
-    Every pixel used to place its samples on the same regular grid of cell centres: a periodic
-    texture whose period beats with the grid (a checkered floor towards its horizon) then came
-    out as moiré, pixel values swinging 0.13-0.84 at 64 spp where the converged value is ~0.5.
+    Why jittered, and per pixel: with every pixel's samples on the same regular grid of cell
+    centres, a periodic texture whose period beats with the grid (a checkered floor towards its
+    horizon) comes out as moiré, pixel values far from the converged value at any spp.
     """
     dtype = dtype or jnp.result_type(float)
     order_key, jitter_key = jax.random.split(jax.random.key(_PIXEL_KEY))

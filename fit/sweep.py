@@ -113,10 +113,9 @@ def reach(coc_reach: float | None, window: float | None) -> float:
 
     `guess_and_bounds` gives it at the focus inside its bounds that blurs the scene most (half
     the nearest depth), so the truth's own largest CoC at the bound is several times smaller:
-    at 2 windows (32 px, the default before session 36) the bound fell below 6 of 64 data_gen
-    samples' true apertures (256 x 256, max CoC up to 16 px: at the true focus it reached only
-    12.6 px on one of them) and those fits ended at it. 8 windows, as
-    `benchmarks/fit_accuracy.py` uses, kept every truth of that set inside."""
+    with 2 windows the bound falls below some data_gen samples' true apertures and their fits
+    end at it. 8 windows, as `benchmarks/fit_accuracy.py` uses, keep the truths of a 64-sample
+    256 x 256 data set inside."""
     return float(coc_reach) if coc_reach is not None else 8.0 * float(window or 16.0)
 
 
