@@ -431,7 +431,7 @@ def main():
     with open(base + ".json", "w") as fh:
         json.dump([{k: v for k, v in r.items() if k not in ("images", "masks")} for r in results],
                   fh, indent=1)
-    for r in results:  # (issue 3's accuracy scene, and the mirrors)
+    for r in results:  # (the quads scene, and the mirrors)
         if r["name"] in ("quads", "mirror", "bench/mirror"):
             error_map(r, args, base + "_" + r["name"].replace("/", "_") + ".png")
     print(f"wrote {args.out}")

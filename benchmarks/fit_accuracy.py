@@ -1,5 +1,4 @@
-"""Accuracy of `dofjax.fit_focus` (issue 5's numbers): noise-free suite, noise vs Cramer-Rao, lens
-reference targets.
+"""Accuracy of `dofjax.fit_focus`: noise-free suite, noise vs Cramer-Rao, lens reference targets.
 
     python benchmarks/fit_accuracy.py --suite     [--cases 100] [--size 256]
     python benchmarks/fit_accuracy.py --noise     [--noise-scenes 3] [--draws 50] [--sigma 0.01]

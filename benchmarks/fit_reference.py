@@ -1,5 +1,5 @@
 """Focus and aperture recovery by `dofjax.fit_focus` on lens-reference targets of
-defocus_regions' scenes (issue 46, items 3 and 6).
+defocus_regions' scenes.
 
     python benchmarks/fit_reference.py                   # 4 scenes x 3 cases, 256 px, 2048 spp
     python benchmarks/fit_reference.py --scipy           # + scipy least_squares, model targets
@@ -60,7 +60,7 @@ import dofjax
 HERE = os.path.dirname(os.path.abspath(__file__))
 PARAMS = ("focus_distance", "aperture_radius")
 SHORT = {"focus_distance": "d", "aperture_radius": "A"}
-# issue 46 item 3: median and max |relative error| per parameter; item 6: time and compile
+# targets: median and max |relative error| per parameter; time per fit and compile time
 TARGETS = {"focus_distance": (0.01, 0.03), "aperture_radius": (0.02, 0.06)}
 FIT_SECONDS, COMPILE_SECONDS = 1.0, 10.0
 MAX_WINDOW = 32.0  # fit_focus's default max_window

@@ -27,8 +27,8 @@ def dense_jacobian(fn, y, args, jac_fn=None, adjoint=None):
       for the predicted reduction and for every rejected LM step: each would be a pass through
       the whole defocus, and each a copy of it in the compiled program;
     - reverse mode transposes `J @ dy` (a reduction) instead of the model: a gradient costs one
-      `jax.jacfwd`, and transposing the shifted-sum blurs (pads, ~9x their forward cost on the
-      CPU) is never needed.
+      `jax.jacfwd`, and transposing the shifted-sum blurs (pads, several times their forward
+      cost on the CPU) is never needed.
 
     `adjoint`: a cheaper transpose where the model has one. Then `jac_fn(y, args)` returns
     (out, J, res) and `adjoint(res, ct)` is J^T ct (shape y.shape) from the residuals `res`, and
@@ -56,7 +56,7 @@ def forward_only():
     """While tracing inside this context, the models traced are differentiated in forward mode
     only (a Jacobian built by `jax.jacfwd`), so they need not prepare for reverse mode:
     `dofjax.defocus(method="sliced")` then skips its adjoint's residuals (dead code XLA would
-    drop anyway, but compiling it cost the fit ~0.5-1 s of its 20 s budget). The choice is
+    drop anyway, but compiling it lengthens the fit's first call). The choice is
     made when a function is traced: a trace JAX has cached keeps it (both are correct)."""
     before = getattr(_trace_state, "forward_only", False)
     _trace_state.forward_only = True

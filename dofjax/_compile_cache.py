@@ -1,11 +1,11 @@
 """JAX's persistent compilation cache for dofjax's command-line tools.
 
-Most of a command's first fit or render is XLA compilation (a 256x256 `fit_focus`: ~13 s of
-~18 s). JAX can keep compiled programs on disk, keyed by the program, the JAX version and the
-compile options, so a later process with the same shapes and settings loads the same executable
-instead of compiling it again (`python -m fit.demo`: fit 17.3 s -> 6.7 s on its second run; what
-remains is tracing). The library itself never changes JAX's configuration; the command-line tools
-(`dofjax`, `python -m fit.*`, `python -m data_gen`) call `use_compilation_cache` at start-up.
+Most of a command's first fit or render is XLA compilation. JAX can keep compiled programs on disk,
+keyed by the program, the JAX version and the compile options, so a later process with the same
+shapes and settings loads the same executable instead of compiling it again (what remains is
+tracing; docs/performance.md, "The persistent compilation cache"). The library itself never changes
+JAX's configuration; the command-line tools (`dofjax`, `python -m fit.*`, `python -m data_gen`)
+call `use_compilation_cache` at start-up.
 """
 
 from __future__ import annotations

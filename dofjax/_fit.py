@@ -271,9 +271,9 @@ class _ScreenLM(optx.LevenbergMarquardt):
     knows), and once its next step would be below `_SCREEN_STEP`.
 
     The ends are `options["ends"]` (k, len(free)) in the solver's coordinates, with their
-    losses `options["end_loss"]` (+inf: no end in that slot). On the quads scene of
-    benchmarks/fit_speed.py the three full-resolution candidates all converged to the truth,
-    7 + 8 + 8 Jacobians at 256x256 for one minimum.
+    losses `options["end_loss"]` (+inf: no end in that slot). Without these stops, on the
+    quads scene of `benchmarks/fit_speed.py` the three full-resolution candidates all converge
+    to the same minimum, each paying its own Jacobians.
 
     `options["screen"]` (a traced bool) turns both tests off: the solver is then plain
     Levenberg-Marquardt, so one compiled copy can serve the screens and the polish

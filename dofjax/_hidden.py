@@ -116,7 +116,8 @@ def hidden_layer(rgb_c, c, window: float):
     # each brighter than 1 with weight 1 / peak^2 (so it adds at most 1 / peak to the fill's
     # sums): the anti-aliased rim of an HDR emitter carries the backdrop's depth and tens of
     # times its radiance, and in a plain mean a few such pixels lit the whole estimate behind
-    # the emitter (bench/highlights: RMSE 0.098 -> 0.068 with this weight, 1 / peak gave 0.078).
+    # the emitter (1 / peak^2 is closer to the lens reference on the highlights scene than a
+    # plain mean or 1 / peak: `python benchmarks/defocus_accuracy.py`).
     # An area that is bright throughout still fills with its own mean (the weights cancel in
     # the normalisation), and images within [0, 1] are untouched.
     trust = 1.0 / jnp.square(jnp.maximum(jnp.max(rgb_c, axis=0), 1.0))
@@ -124,8 +125,7 @@ def hidden_layer(rgb_c, c, window: float):
     return fill[:3], fill[3], h
 
 
-# jitted: `defocus_fn` makes it once, outside any jit (op by op it took 22 ms at 64 x 64,
-# jitted 0.1 ms; 512 x 512: ~16 ms jitted, half a sliced forward pass)
+# jitted: `defocus_fn` makes it once, outside any jit (op by op it is far slower)
 @functools.partial(jax.jit, static_argnames=("window",))
 def hidden_layers(rgb, depth, window: float, reflection=None):
     """Single-layer RGB-D: `hidden_layer`'s estimate from the depth alone, as peeled layers.

@@ -148,11 +148,11 @@ def lens_defocus(rgb, depth, camera: Camera, *, window: float, blades=None, rota
                  ratio=1.0, reflection=None, reflection_depth=None, layers=None,
                  samples: int = LENS_SAMPLES, spacing: float = SLICE_SPACING, weights="q",
                  interp="lanczos", hidden: bool = True, mirror=None):
-    """Defocus by lens-sampled slices (module docstring); pure and jittable (`window`, shape,
+    """Defocus by lens-sampled slices; pure and jittable (`window`, shape,
     `samples`, `spacing`, `weights` and `interp` static). Arguments as `dofjax.defocus`; no input
     validation here. `weights`: "q" (split linear in c |c|) or "c"; `interp`: "lanczos"
-    (Lanczos-3), "cubic" (Catmull-Rom) or "linear" (bilinear) reads: the alternatives measured
-    in the module docstring.
+    (Lanczos-3), "cubic" (Catmull-Rom) or "linear" (bilinear) reads (docs/defocus.md, "The
+    lens method, step by step").
 
     Single-layer input (`layers=None`) gets the hidden-background estimate as its extra source
     (unless `hidden` is False). `mirror`: a `Mirror` (footprint, and the radiance and virtual

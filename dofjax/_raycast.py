@@ -462,8 +462,7 @@ def _peel(scene: Scene, o, d, layers: int, closed=None, planes=None):
         blocked = hit & ((_plane_t(scene, o, d, start) <= t) | inside)
         # Layer 0 is the visible image: it covers every pixel (the background where the ray
         # misses). A hidden layer covers where the ray entered a surface; where it escapes, alpha
-        # is 0, not a background layer: measured on examples/quads.json (benchmarks/
-        # defocus_accuracy.py), a background behind a frame-filling backdrop, never visible
+        # is 0, not a background layer: a background behind a frame-filling backdrop, never visible
         # through the lens, leaks into the defocus at the frame border (sliced) and through
         # surfaces one depth slice in front of it (pyramid).
         alpha = jnp.where((k == 0) | (hit & ~ended), 1.0, 0.0).astype(d.dtype)

@@ -55,7 +55,7 @@ def serve(path: str, *, host: str = "127.0.0.1", port: int = 0, open_browser: bo
     sock = bind(host, port)
     url = url_of(sock)
     # This process is the viewer's own: let XLA reuse large frames' memory instead of faulting
-    # it in on every call (before the first computation; 1024 px live frames ~0.8x the time).
+    # it in on every call (before the first computation; large live frames render faster).
     dofjax.tune_host_memory()
     try:
         print(f"dofjax view: {url} (loading {path})", file=out, flush=True)
