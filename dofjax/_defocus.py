@@ -773,8 +773,9 @@ def defocus(
         shape: "disc" or "polygon" (then `blades` >= 3 and `rotation` in radians, counter-clockwise,
             0 puts a vertex on +x). Near-field (c > 0) kernels are the point reflection of far ones.
         ratio: anamorphic width / height of the aperture (1 = round).
-        reflection, reflection_depth: (H, W, 3) radiance seen through mirrors (included in rgb)
-            and its virtual z-depth; it is blurred at that depth instead of the mirror's.
+        reflection: (H, W, 3) radiance seen through mirrors (included in rgb); it is blurred
+            at `reflection_depth` instead of the mirror's depth.
+        reflection_depth: (H, W) the reflection's virtual z-depth.
         mirror: a `Mirror` (from `render`, in `RGBD.mirror`): the mirrors' footprint and what they
             show a little beyond it. The blurred reflection is then confined to the blurred
             footprint (docs/defocus.md, "Mirrors"); reflection / reflection_depth default to
@@ -953,14 +954,21 @@ def defocus_fn(
     a shortcut (at aperture 0 the core gives the identity anyway) and never warns.
 
     Args:
-        rgb, depth, camera: as `defocus` (or an `RGBD` and a camera). The camera supplies the pixel
-            scale (fov, width); its focus and aperture are only used to choose the window when
-            `window` is None.
+        rgb: as `defocus` (or an `RGBD`, with the camera as `depth`).
+        depth: as `defocus`.
+        camera: as `defocus`. It supplies the pixel scale (fov, width); its focus and aperture
+            are only used to choose the window when `window` is None.
         window: largest |c| (px) the solver may reach (e.g. from its bounds on u = 1/d and A:
             `A_max * k * max|1/z - u|`), rounded up to a level magnitude; larger |c| is clamped
             to it (call `f.max_abs_coc(focus, aperture)` to check). None: 2x the camera's |c|.
-        shape, blades, rotation, ratio, reflection, reflection_depth, layers, mirror: as
-            `defocus`.
+        shape: as `defocus`.
+        blades: as `defocus`.
+        rotation: as `defocus`.
+        ratio: as `defocus`.
+        reflection: as `defocus`.
+        reflection_depth: as `defocus`.
+        layers: as `defocus`.
+        mirror: as `defocus`.
 
     Returns:
         f(focus_distance, aperture_radius): world units (scalars or 0-d arrays) -> image. The

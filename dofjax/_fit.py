@@ -1787,18 +1787,19 @@ def fit_focus(
 
     Args:
         target: (H, W, 3) the blurred image, linear colour.
-        rgb, depth: (H, W, 3) sharp linear colour and (H, W) z-depth (world units, +inf for the
-            background) it was made from. They do not depend on the parameters: computed once.
-            Or call `fit_focus(target, rgbd, camera)` (or `camera=camera`) with an `RGBD` from
-            `render` or `read_rgbd`: its mirror layer (blurred at its virtual depth) and peeled
-            layers (what a blurred foreground uncovers) then enter the model too, as in
-            `defocus(rgbd, ...)`.
+        rgb: (H, W, 3) sharp linear colour the target was made from (with `depth`). It does
+            not depend on the parameters: computed once. Or call `fit_focus(target, rgbd,
+            camera)` (or `camera=camera`) with an `RGBD` from `render` or `read_rgbd`: its
+            mirror layer (blurred at its virtual depth) and peeled layers (what a blurred
+            foreground uncovers) then enter the model too, as in `defocus(rgbd, ...)`.
             Supersampled: a sharp input s times the target's size per side, rendered with
             `camera.scaled(s)`. The polish then defocuses it on its own grid and box-averages
             the prediction to the target's pixels; the search runs on it box-averaged first. A
             pixel on a depth edge then mixes two surfaces over 1/s of the width, so each part
             is blurred at its own depth: closer to a lens-sampled target, for several times the
             fit time (docs/fitting.md, "Why the search is built this way").
+        depth: (H, W) z-depth of the sharp input, world units, +inf for the background (or the
+            camera, when `rgb` is an `RGBD`).
         camera: the initial guess for focus_distance and aperture_radius, and everything that is
             not fitted (fov, resolution). Its width x height must equal the target's (and the
             sharp input's, or divide it: see above).
@@ -1817,14 +1818,16 @@ def fit_focus(
             u = 1/d inside the bounds), solved as one vmapped batch. Each start's aperture is
             the best (lowest multi-start-level loss) of the guess and 6 log-spaced values inside
             the aperture bounds.
-        rtol, atol: optimistix tolerances for the final (full-resolution) solve: a step ends it
+        rtol: optimistix relative tolerance for the final (full-resolution) solve: a step ends it
             when it moves the solver's internal coordinates (sine-mapped u and log A) by less
             than atol + rtol |y| and every (mean-scaled) residual by less than atol + rtol |r|
             (max norms). None: 1e-6 and 1e-8 in float32, 1e-8 and 1e-10 in float64. float32
             needs the looser pair: at the minimum of a noisy target each LM step moves y by
             rounding, and the float64 pair would end many fits at max_steps, flagged not
             converged, at the right minimum.
-        max_steps: per polish solve; start_steps: per multi-start solve (at tolerance 1e-4).
+        atol: optimistix absolute tolerance, with `rtol`.
+        max_steps: most solver steps per polish solve.
+        start_steps: most solver steps per multi-start solve (at tolerance 1e-4).
         screen_steps: when the multi-start ran on a downsampled copy, every distinct start's
             end point is refined for up to this many steps (tolerance 1e-4) on each finer
             pyramid level and then at full resolution, and the pair to polish is picked by the

@@ -103,8 +103,9 @@ def fisher_information(
     exactly by `jax.jacfwd` at `camera`'s focus distance and aperture (usually the true ones).
 
     Args:
-        rgb, depth: (H, W, 3) sharp linear colour and (H, W) z-depth (world units, +inf for the
-            background), as for `dofjax.fit_focus`.
+        rgb: (H, W, 3) sharp linear colour, as for `dofjax.fit_focus`.
+        depth: (H, W) z-depth (world units, +inf for the background), as for
+            `dofjax.fit_focus`.
         camera: the camera whose focus_distance (d) and aperture_radius (A), world units, the
             information is evaluated at; width x height must equal the image's.
         sigma: noise standard deviation per pixel value, image (linear colour) units: a scalar,
@@ -115,9 +116,11 @@ def fisher_information(
             picks for the same `bounds`/`max_window` (pass the fit's `window` if it was given one).
         mask: (H, W) bool, or weights >= 0 read as inverse-variance multipliers (pixel noise
             sigma / sqrt(w)); pixels with 0 carry no information. As the `mask` of `fit_focus`.
-        bounds, max_window, defocus_options: as for `fit_focus`; used only to pick the default
-            model's window (bounds and max_window, only when `window` is None: then `camera`
-            must lie inside the bounds, as `fit_focus`'s guess must) and shape.
+        bounds: as for `fit_focus`; used only to pick the default model's window when `window`
+            is None (then `camera` must lie inside the bounds, as `fit_focus`'s guess must).
+        max_window: as for `fit_focus`; used only to pick the default model's window when
+            `window` is None.
+        defocus_options: as for `fit_focus`; the default model's method and aperture shape.
 
     Returns:
         (2, 2) Fisher information in (focus_distance, aperture_radius) order, units 1 / world
@@ -168,8 +171,16 @@ def cramer_rao_bound(
     one parameter in `fixed` (known), its entry is 0 and the other's is `1 / sqrt(I_ii)`.
 
     Args:
-        rgb, depth, camera, sigma, model, window, mask, bounds, max_window, defocus_options: as
-            for `fisher_information`.
+        rgb: as for `fisher_information`.
+        depth: as for `fisher_information`.
+        camera: as for `fisher_information`.
+        sigma: as for `fisher_information`.
+        model: as for `fisher_information`.
+        window: as for `fisher_information`.
+        mask: as for `fisher_information`.
+        bounds: as for `fisher_information`.
+        max_window: as for `fisher_information`.
+        defocus_options: as for `fisher_information`.
         fixed: parameter names taken as known, e.g. ("aperture_radius",).
         max_condition: the Fisher matrix counts as singular when the condition number of its
             correlation form `I_ij / sqrt(I_ii I_jj)` exceeds this (the square of the normalised
