@@ -3,34 +3,23 @@
 Forward accuracy in float32 is tested explicitly where it matters (`dtype` arguments,
 `jnp.float32`).
 
-Most of the suite's time is XLA compilation, and many tests compile the same programs (the same
-defocus or fit at the same shapes from separate closures, pytest-xdist workers, or the
-subprocesses of the data_gen and sharding tests). JAX's persistent compilation cache lets them
-share one compilation: it is keyed by the program, the JAX version and the compile options, so a
-hit is the same executable. It is set through the environment too, so subprocesses use it. Set
-`DOFJAX_TEST_JAX_CACHE` to a directory to choose where it lives, or to "" to turn it off.
+JAX's persistent compilation cache is off by default: on the CPU backend of the pinned jaxlib,
+writing or reading one of its entries from two pytest-xdist workers at once has aborted a worker
+(SIGABRT in `put_executable_and_time`, SIGSEGV in `get_executable_and_time`). Set
+`DOFJAX_TEST_JAX_CACHE` to a directory to use one anyway (subprocesses inherit it).
 """
 
-import getpass
 import os
-import tempfile
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
 
 
-def _user() -> str:
-    """The login name for the cache directory's name (os.getuid does not exist on Windows)."""
-    try:
-        return getpass.getuser()
-    except (KeyError, OSError):  # no name for this uid (some containers)
-        return "user"
-
-
-_CACHE = os.environ.get(
-    "DOFJAX_TEST_JAX_CACHE",
-    os.path.join(tempfile.gettempdir(), f"dofjax-test-jax-cache-{_user()}"))
+_CACHE = os.environ.get("DOFJAX_TEST_JAX_CACHE", "")
+# the command-line tools the tests run (in this process or as subprocesses) use the same setting
+# instead of their default cache directory
+os.environ["DOFJAX_JAX_CACHE"] = _CACHE
 if _CACHE:
     _settings = {"jax_compilation_cache_dir": _CACHE,
                  "jax_persistent_cache_min_compile_time_secs": 0.2,
