@@ -258,6 +258,8 @@ def _configure_defocus(p: argparse.ArgumentParser) -> None:
                    help="aperture (lens) radius, world units (default: the input's camera)")
     p.add_argument("--method", default="sliced", choices=("sliced", "exact", "pyramid", "lens"),
                    help="defocus method (default sliced; docs/defocus.md)")
+    p.add_argument("--width", type=int, metavar="W", help="scene files: image width, pixels")
+    p.add_argument("--height", type=int, metavar="H", help="scene files: image height, pixels")
     p.add_argument("--layers", type=int, metavar="K",
                    help="scene files: render K depth-peeled layers for the defocus")
     p.add_argument("--spp", type=int, default=1,
@@ -294,15 +296,19 @@ def _run_defocus(args: argparse.Namespace) -> int:
     if args.layers is not None and args.layers < 1:
         raise ValueError(f"--layers: must be >= 1, got {args.layers}")
     scene_file = args.input.lower().endswith(".json")
-    if not scene_file and (args.reference or args.layers is not None or args.spp != 1):
-        flag = "--reference" if args.reference else "--layers" if args.layers else "--spp"
-        raise ValueError(f"{flag}: needs the scene file (JSON), not a sharp EXR: a lens-sampled "
-                         f"target traces the scene itself")
+    scene_only = [flag for flag, value in (("--reference", args.reference or None),
+                                           ("--layers", args.layers), ("--width", args.width),
+                                           ("--height", args.height),
+                                           ("--spp", None if args.spp == 1 else args.spp))
+                  if value is not None]
+    if not scene_file and scene_only:
+        raise ValueError(f"{scene_only[0]}: needs the scene file (JSON), not a sharp EXR (the "
+                         f"sharp image is given; a lens-sampled target traces the scene itself)")
     if args.reference and args.method != "sliced":
         raise ValueError("--method: not used with --reference (the lens is sampled, not modelled)")
     if scene_file:
         args.scene = args.input
-        for flag in ("width", "height", "fov", "eye", "target", "up"):
+        for flag in ("fov", "eye", "target", "up"):
             setattr(args, flag, None)
         camera = _camera_from_args(args)
         scene = dofjax.load_scene(args.input)
@@ -412,6 +418,8 @@ def _depth_summary(z: np.ndarray) -> str:
 
 
 def _run_info(args: argparse.Namespace) -> int:
+    if not args.file.lower().endswith(".exr"):
+        raise ValueError(f"{args.file}: `dofjax info` describes OpenEXR files (.exr)")
     for line in info_lines(args.file):
         print(line)
     return 0

@@ -87,7 +87,7 @@ def _start(a: argparse.Namespace, depth, fov: float, width: int) -> tuple[float,
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(prog="python -m fit.recover",
                                 description="Recover focus distance and aperture of a target.")
-    p.add_argument("target")
+    p.add_argument("target", help="the blurred image: EXR (linear), or PNG/JPEG/TIFF (sRGB)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--sharp", help="sharp RGB-D EXR (R, G, B, Z)")
     src.add_argument("--scene", help="scene JSON to render the sharp RGB-D from")
@@ -136,7 +136,10 @@ def main(argv=None) -> None:
 
 
 def _run(a: argparse.Namespace) -> int:
-    target, _, tmeta = dofjax.read_exr(a.target)
+    if a.target.lower().endswith(".exr"):
+        target, _, tmeta = dofjax.read_exr(a.target)
+    else:  # a photograph (PNG, JPEG, TIFF, ...): sRGB decoded to linear, no metadata
+        target, tmeta = dofjax.read_image(a.target), {}
     if a.sharp:
         # the mirror layer and peeled layers, when the file has them, enter the fit
         sharp, smeta = dofjax.read_rgbd(a.sharp)
