@@ -1,4 +1,4 @@
-"""NaN-free elementary maths: the double-`where` trick in one place (STYLE.md section 4).
+"""NaN-free elementary maths: the double-`where` trick in one place.
 
 Every division, square root, reciprocal depth or normalisation whose argument can hit zero or
 infinity goes through these helpers, so that neither the value nor the gradient is ever NaN.

@@ -1,4 +1,4 @@
-"""Array shape aliases shared by the public API (STYLE.md section 3)."""
+"""Array shape aliases shared by the public API."""
 
 from jaxtyping import Array, Float, Int
 
