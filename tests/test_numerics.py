@@ -1,4 +1,4 @@
-"""The NaN-free helpers: values and gradients at the points where NaNs hide (STYLE.md section 4)."""
+"""The NaN-free helpers: values and gradients at the points where NaNs hide."""
 
 import jax
 import jax.numpy as jnp
