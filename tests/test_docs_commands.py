@@ -103,7 +103,9 @@ def scratch(tmp_path_factory):
     shutil.copytree(os.path.join(ROOT, "examples"), root / "examples")
     bin_dir = root / "bin"
     bin_dir.mkdir()
-    os.symlink(sys.executable, bin_dir / "python")
+    # a wrapper, not a symlink: a symlinked venv interpreter outside the venv loses its packages
+    (bin_dir / "python").write_text(f'#!/bin/sh\nexec "{sys.executable}" "$@"\n')
+    (bin_dir / "python").chmod(0o755)
     dofjax_cli = shutil.which("dofjax", path=os.path.dirname(sys.executable))
     assert dofjax_cli, "the dofjax console script is not installed next to this interpreter"
     os.symlink(dofjax_cli, bin_dir / "dofjax")

@@ -100,7 +100,7 @@ def test_sweep_fits_a_sharp_file_with_a_guard_band(tmp_path):
     and a Cramer-Rao bound that takes no information from the band."""
     out = str(tmp_path / "ds")
     noisy = {**CONFIG, "noise": [{"model": "gaussian", "weight": 1.0, "sigma": 0.01}],
-             "target": {"margin": 5}}
+             "target": {"method": "defocus", "margin": 5}}
     run(out, 1, 5, load_config(noisy), progress=False)
     (rec,) = read_manifest(out)
     assert rec["truth"]["margin"] == 5

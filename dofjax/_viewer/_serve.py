@@ -49,6 +49,7 @@ def serve(path: str, *, host: str = "127.0.0.1", port: int = 0, open_browser: bo
     import dofjax
 
     start = time.perf_counter()
+    engine = None
     check_input(path)
     if target is not None and not os.path.isfile(target):
         raise FileNotFoundError(f"{target}: no such file")
@@ -91,4 +92,12 @@ def serve(path: str, *, host: str = "127.0.0.1", port: int = 0, open_browser: bo
     finally:
         sock.close()
     print("dofjax view: stopped", file=out, flush=True)
+    if engine is not None and any(t.is_alive() for t in threading.enumerate()
+                                  if t is not threading.main_thread() and t.daemon):
+        # XLA may still be compiling or running a program in a background thread (the exact
+        # method's warm-up, a reference or fit job), and it cannot be cancelled: finalising the
+        # interpreter under it crashes (SIGSEGV). Nothing is left to save: leave without.
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
     return 0
