@@ -92,7 +92,10 @@ def _serve_until_ready(command: str, cwd: str, env: dict) -> None:
             code = proc.wait(timeout=30)
         except subprocess.TimeoutExpired:
             proc.kill()
+            proc.wait()
             raise AssertionError(f"{command}: did not stop on Ctrl-C") from None
+        finally:
+            proc.stdout.close()
     assert code in (0, -signal.SIGINT, 130), "".join(lines)
 
 
