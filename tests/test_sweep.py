@@ -1,11 +1,15 @@
 """`python -m fit.sweep`: fits a data_gen sample with the model its target was made with."""
 
+import json
+import sys
+
 import numpy as np
 import pytest
 
 import dofjax
 from data_gen import load_config
 from data_gen._run import read_manifest, run
+from fit import sweep
 from fit._clipped import clipped_mask, unclipped
 from fit.sweep import fit_record, true_camera
 
@@ -22,7 +26,7 @@ CONFIG = {
 
 
 @pytest.mark.slow
-def test_sweep_fits_the_peeled_layers_the_target_was_made_with(tmp_path):
+def test_sweep_fits_the_peeled_layers_the_target_was_made_with(tmp_path, monkeypatch, capsys):
     out = str(tmp_path / "ds")
     run(out, 1, 5, load_config(CONFIG), progress=False)
     (rec,) = read_manifest(out)
@@ -38,6 +42,19 @@ def test_sweep_fits_the_peeled_layers_the_target_was_made_with(tmp_path):
     row = fit_record(rec, out, np.random.default_rng(0), 16.0, 4, crb=False)
     assert abs(row["rel_err_focus_distance"]) < 1e-3, row
     assert abs(row["rel_err_aperture_radius"]) < 1e-3, row
+    # the whole command where matplotlib (the bench extra) is not installed: the results are
+    # written, the plots skipped with a note, and it ends normally
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # `import matplotlib` raises
+    result = tmp_path / "sweep"
+    sweep.main([f"{out}/manifest.jsonl", "--window", "16", "--starts", "4", "--no-crb",
+                "--out", str(result)])
+    printed = capsys.readouterr()
+    assert "sweep: no plots (matplotlib is not installed" in printed.err
+    assert f"wrote {result}/sweep.jsonl, sweep.md" in printed.out
+    assert (result / "sweep.md").exists() and not (result / "sweep_noise.png").exists()
+    with open(result / "sweep.jsonl") as f:
+        (line,) = f.read().splitlines()
+    assert abs(json.loads(line)["rel_err_focus_distance"]) < 1e-3
 
 
 def test_clipped_pixels_are_left_out_of_the_fit():
