@@ -419,7 +419,8 @@ def _depth_summary(z: np.ndarray) -> str:
 
 def _run_info(args: argparse.Namespace) -> int:
     if not args.file.lower().endswith(".exr"):
-        raise ValueError(f"{args.file}: `dofjax info` describes OpenEXR files (.exr)")
+        raise ValueError(f"{args.file}: not an OpenEXR file (.exr), which `dofjax info` "
+                         f"describes")
     for line in info_lines(args.file):
         print(line)
     return 0
