@@ -146,9 +146,8 @@ def _plain(x):
     return a.tolist()
 
 
-def _render_metadata(args: argparse.Namespace, camera) -> dict:
-    import dofjax
-
+def _camera_metadata(camera) -> dict:
+    """The camera as `dofjax:` metadata (what `_camera_from_metadata` reads back)."""
     return {
         "focus_distance": _plain(camera.focus_distance),
         "aperture_radius": _plain(camera.aperture_radius),
@@ -158,6 +157,21 @@ def _render_metadata(args: argparse.Namespace, camera) -> dict:
         "eye": _plain(camera.eye),
         "target": _plain(camera.target),
         "up": _plain(camera.up),
+    }
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """-o and --png name files of the right kind (checked before any slow work)."""
+    for flag, name, ext in (("-o", args.output, ".exr"), ("--png", args.png, ".png")):
+        if name is not None and not name.lower().endswith(ext):
+            raise ValueError(f"{flag}: {name}: the file name must end in {ext}")
+
+
+def _render_metadata(args: argparse.Namespace, camera) -> dict:
+    import dofjax
+
+    return {
+        **_camera_metadata(camera),
         "pixel_scale": _plain(camera.pixel_scale),
         "scene": str(args.scene),
         "spp": args.spp,
@@ -174,10 +188,7 @@ def _run_render(args: argparse.Namespace) -> int:
         raise ValueError(f"--spp: must be >= 1, got {args.spp}")
     if args.layers is not None and args.layers < 1:
         raise ValueError(f"--layers: must be >= 1, got {args.layers}")
-    # Check output names before the (slow) render so a typo costs nothing.
-    for flag, name, ext in (("-o", args.output, ".exr"), ("--png", args.png, ".png")):
-        if name is not None and not name.lower().endswith(ext):
-            raise ValueError(f"{flag}: {name}: the file name must end in {ext}")
+    _check_outputs(args)  # before the (slow) render, so a typo costs nothing
     scene = dofjax.load_scene(args.scene)
     camera = _camera_from_args(args)
     if args.reference:
@@ -274,10 +285,9 @@ def _configure_defocus(p: argparse.ArgumentParser) -> None:
 
 def _camera_from_metadata(path: str, meta: dict, shape) -> dict:
     """A sharp EXR's camera fields from its `dofjax:` metadata (as `dofjax render` writes it)."""
-    missing = [k for k in ("fov",) if k not in meta]
-    if missing:
-        raise ValueError(f"{path}: no {', '.join(missing)} in the file's dofjax metadata (write "
-                         f"it with `dofjax render`, or dofjax.write_rgbd(..., metadata=...))")
+    if "fov" not in meta:
+        raise ValueError(f"{path}: no fov in the file's dofjax metadata (write it with "
+                         f"`dofjax render`, or dofjax.write_rgbd(..., metadata=...))")
     fields = {"width": shape[1], "height": shape[0], "fov": meta["fov"]}
     for name in ("focus_distance", "aperture_radius", "eye", "target", "up"):
         if name in meta:
@@ -288,9 +298,7 @@ def _camera_from_metadata(path: str, meta: dict, shape) -> dict:
 def _run_defocus(args: argparse.Namespace) -> int:
     import dofjax
 
-    for flag, name, ext in (("-o", args.output, ".exr"), ("--png", args.png, ".png")):
-        if name is not None and not name.lower().endswith(ext):
-            raise ValueError(f"{flag}: {name}: the file name must end in {ext}")
+    _check_outputs(args)
     if args.spp < 1:
         raise ValueError(f"--spp: must be >= 1, got {args.spp}")
     if args.layers is not None and args.layers < 1:
@@ -334,10 +342,7 @@ def _run_defocus(args: argparse.Namespace) -> int:
     image = np.asarray(dofjax.defocus(sharp, camera, method=args.method, margin=margin))
     seconds = time.perf_counter() - start
     metadata = {
-        "focus_distance": _plain(camera.focus_distance),
-        "aperture_radius": _plain(camera.aperture_radius),
-        "fov": _plain(camera.fov), "width": camera.width, "height": camera.height,
-        "eye": _plain(camera.eye), "target": _plain(camera.target), "up": _plain(camera.up),
+        **_camera_metadata(camera),
         "method": args.method, "role": "target", "generator": "dofjax defocus",
         "version": dofjax.__version__,
         **{k: v for k, v in source.items() if v is not None},
