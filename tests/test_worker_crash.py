@@ -1,0 +1,51 @@
+"""The suite's handling of a crashed pytest-xdist worker (tests/conftest.py): a test that
+crashes its worker once is re-run and reported; one that crashes it every time ends the
+session instead of hanging it."""
+
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("xdist")
+
+_TEST = """
+import os, signal
+
+def test_before():
+    pass
+
+def test_crashes():
+    if os.environ.get("ALWAYS") or not os.path.exists("crashed"):
+        open("crashed", "w").close()
+        os.kill(os.getpid(), signal.SIGSEGV)
+
+def test_after():
+    pass
+"""
+
+
+def _run(tmp_path, always):
+    shutil.copy(os.path.join(os.path.dirname(__file__), "conftest.py"), tmp_path)
+    (tmp_path / "test_a.py").write_text(_TEST)
+    (tmp_path / "test_b.py").write_text("def test_other():\n    pass\n")
+    env = dict(os.environ, ALWAYS="1" if always else "")
+    return subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "2",
+         "--dist", "loadfile", "."],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+
+
+def test_a_crash_once_is_rerun_and_listed(tmp_path):
+    run = _run(tmp_path, always=False)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "4 passed, 1 rerun" in run.stdout
+    assert "test_a.py::test_crashes: crashed its worker 1x" in run.stdout
+
+
+def test_a_crash_every_time_ends_the_session(tmp_path):
+    run = _run(tmp_path, always=True)
+    assert run.returncode == 1, run.stdout + run.stderr
+    assert "test_a.py::test_crashes crashed its test worker twice" in run.stdout + run.stderr
