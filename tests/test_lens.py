@@ -11,6 +11,7 @@ import pytest
 import scipy.signal
 
 import dofjax
+from dofjax import Camera
 from dofjax._lens import LENS_SAMPLES, SLICE_SPACING, lens_defocus, lens_points
 from tests.test_sliced import N, camera, depth_for_coc  # the same 32 px camera and CoC map
 
@@ -226,6 +227,32 @@ def test_gradients_match_finite_differences():
             fd = (up - float(loss(*y))) / (2 * h)
             assert float(gi) == pytest.approx(fd, rel=1e-5)
             assert float(jac[i]) == pytest.approx(fd, rel=1e-5)
+
+
+@pytest.mark.parametrize("extras", [("layers", "mirror"), ("masked",)])
+def test_bands_of_rows_equal_one_pass(extras):
+    """The image is defocused in bands of rows (a bounded sheet stack, docs/defocus.md,
+    "Memory"): bands of 8 rows (the last one partial) give the one-pass image and Jacobian,
+    with peeled layers and a reflection, and with a mirror's footprint."""
+    from tests.test_sliced import _random_sources
+
+    n = 36
+    cam = Camera(width=n, height=28, fov=50.0, focus_distance=2.2, aperture_radius=0.3)
+    rgb, depth, kw = _random_sources(n, extras, cam, 19)
+    # (28 of the 36 rows; peeled layers are stacked on a leading axis)
+    kw = jax.tree.map(lambda a: a[:, :28] if a.shape[:2] == (3, n) else a[:28], kw)
+
+    def f(p, tile_bytes):
+        return lens_defocus(rgb[:28], depth[:28],
+                            cam.replace(focus_distance=p[0], aperture_radius=p[1]), window=4.0,
+                            samples=8, tile_bytes=tile_bytes, **kw)
+
+    p = jnp.array([2.2, 0.3])
+    one = jax.jacfwd(lambda p: (f(p, 2**40), f(p, 2**40)), has_aux=True)(p)
+    bands = jax.jacfwd(lambda p: (f(p, 1), f(p, 1)), has_aux=True)(p)
+    assert np.abs(one[0]).max() > 1e-2
+    for a, b in zip(one, bands):
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-13 * float(np.abs(a).max()))
 
 
 def test_float32_derivatives_stay_finite_where_a_ray_is_full():
