@@ -617,9 +617,9 @@ def as_colour(name: str, what: str, x, dtype=None):
     colour refused (`check_colour_dtype`)."""
     if x is None:
         return None
-    x = jnp.asarray(x)
-    check_colour_dtype(f"{name}: {what}", x.dtype)
-    return _as_array(x, dtype)
+    # (the caller's dtype, before JAX narrows int64 to int32 without x64)
+    check_colour_dtype(f"{name}: {what}", x.dtype if hasattr(x, "dtype") else np.asarray(x).dtype)
+    return _as_array(jnp.asarray(x), dtype)
 
 
 def as_mirror(name: str, mirror, dtype) -> Mirror | None:

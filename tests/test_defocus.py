@@ -499,6 +499,8 @@ def test_seed_baseline_is_the_hard_disc_normalised_by_pi_r2():
         (dict(kw=dict(window=-1.0)), "window must be > 0"),
         # 8-bit colour is sRGB-coded: refused, not blurred as numbers 0..255
         (dict(rgb=np.full((24, 24, 3), 128, np.uint8)), "rgb must be a floating-point array"),
+        # named as given (not as the int32 JAX makes of it without x64)
+        (dict(rgb=np.full((24, 24, 3), 128, np.int64)), "got dtype int64"),
         (dict(kw=dict(reflection=np.zeros((24, 24, 3), np.int32),
                       reflection_depth=np.full((24, 24), 5.0))),
          "reflection must be a floating-point array"),
