@@ -304,32 +304,47 @@ def test_float32_stays_accurate_and_finite():
     np.testing.assert_allclose(out32, out64, atol=2e-5)
 
 
-@pytest.mark.parametrize("aperture, window, extras", [
-    (0.05, 8, ()), (0.3, 24, ("layers", "mirror")), (0.3, 12, ("layers",)), (0.0, 4, ("mirror",)),
-    (0.3, 24, ("masked",)), (0.2, 12, ("layers", "masked"))])
-def test_written_out_jacobian_equals_autodiff(aperture, window, extras):
+@pytest.mark.parametrize("aperture, window, extras, min_radius", [
+    (0.05, 8, (), 2.0), (0.3, 24, ("layers", "mirror"), 2.0), (0.3, 12, ("layers",), 2.0),
+    (0.0, 4, ("mirror",), 2.0), (0.3, 8, ("mirror",), np.inf), (0.3, 24, ("masked",), 2.0),
+    (0.2, 12, ("layers", "masked"), 2.0), (0.3, 8, ("masked",), np.inf)])
+def test_written_out_jacobian_and_its_adjoint_equal_autodiff(aperture, window, extras,
+                                                             min_radius):
     # sliced_defocus_jacobian carries both tangents by hand (hat slopes, dq as a function of
     # q, the chain rule to focus/aperture at the end): it must equal jax.jacfwd of the plain
     # model, with peeled layers (their gates move with the camera), a mirror layer (unconfined,
     # or "masked": confined to its blurred footprint, a product), coarse and FFT-blurred levels
-    # (window 24), and at aperture 0
+    # (window 24; at min_radius inf, FFT blurs on full-resolution levels), and at aperture 0.
+    # Reverse mode runs sliced_defocus_adjoint (the tangent lanes transposed by hand, from the
+    # value lane's residuals): for any cotangent it must give J^T ct of that Jacobian.
     n = 40
     cam = camera(width=n, height=n, aperture_radius=aperture)
     rgb, depth, kw = _random_sources(n, extras, cam, 11)
+    kw.update(window=window, min_radius=min_radius)
 
     def f(p):
-        return sliced_defocus(rgb, depth, cam.replace(focus_distance=p[0], aperture_radius=p[1]),
-                              window=window, **kw)
+        out = sliced_defocus(rgb, depth, cam.replace(focus_distance=p[0], aperture_radius=p[1]),
+                             **kw)
+        return out, out
 
-    want = jax.jacfwd(f)(jnp.array([cam.focus_distance, aperture]))
-    out, jac = sliced_defocus_jacobian(rgb, depth, cam, window=window, **kw)
-    jac = np.stack(jac, axis=-1)
+    # (the model's value from the same program as its Jacobian: one compilation, not two)
+    want, value = jax.jacfwd(f, has_aux=True)(jnp.array([cam.focus_distance, aperture]))
+    out, jac, res = sliced_defocus_jacobian(rgb, depth, cam, residuals=True, **kw)
     # (with a footprint, a fourth channel: the footprint blurred at the surface's depth)
-    assert jac.shape == (n, n, 4 if "masked" in extras else 3, 2)
-    np.testing.assert_allclose(out, f(jnp.array([cam.focus_distance, aperture])), atol=1e-14)
-    np.testing.assert_allclose(jac, want, rtol=0, atol=1e-12 * max(1.0, float(np.abs(want).max())))
+    assert out.shape == (n, n, 4 if "masked" in extras else 3)
+    np.testing.assert_allclose(out, value, atol=1e-14)
+    np.testing.assert_allclose(np.stack(jac, axis=-1), want, rtol=0,
+                               atol=1e-12 * max(1.0, float(np.abs(want).max())))
     if aperture > 0:
-        assert np.abs(jac).max() > 1e-3
+        assert np.abs(want).max() > 1e-3
+
+    ct = np.random.default_rng(14).standard_normal(out.shape)
+    want_t = np.array([np.sum(j * ct) for j in jac])
+    got = sliced_defocus_adjoint(res, ct, window=window, min_radius=min_radius)
+    scale = np.array([np.sum(np.abs(j * ct)) for j in jac])
+    np.testing.assert_allclose(got, want_t, rtol=0, atol=1e-12 * max(1.0, scale.max()))
+    if aperture > 0:
+        assert np.abs(want_t).min() > 1e-3
 
 
 def _random_sources(n, extras, cam, seed):
@@ -361,36 +376,6 @@ def _random_sources(n, extras, cam, seed):
                   mirror=dofjax.Mirror(coverage=cover, radiance=radiance,
                                        depth=rng.uniform(1.0, 9.0, (n, n))))
     return rgb, depth, kw
-
-
-@pytest.mark.parametrize("aperture, window, extras, min_radius", [
-    (0.05, 8, (), 2.0), (0.3, 24, ("layers", "mirror"), 2.0), (0.3, 12, ("layers",), 2.0),
-    (0.0, 4, ("mirror",), 2.0), (0.3, 8, ("mirror",), np.inf), (0.3, 24, ("masked",), 2.0),
-    (0.2, 12, ("layers", "masked"), 2.0), (0.3, 8, ("masked",), np.inf)])
-def test_adjoint_is_the_transpose_of_the_jacobian(aperture, window, extras, min_radius):
-    # reverse mode runs sliced_defocus_adjoint (the tangent lanes transposed by hand, from the
-    # value lane's residuals): for any cotangent it must give J^T ct of the written-out
-    # Jacobian, with layers (their gates), a mirror, every run of levels and, at min_radius
-    # inf, FFT blurs on full-resolution levels (which also checks their Jacobian)
-    n = 40
-    cam = camera(width=n, height=n, aperture_radius=aperture)
-    rgb, depth, kw = _random_sources(n, extras, cam, 13)
-    kw.update(window=window, min_radius=min_radius)
-    out, jac, res = sliced_defocus_jacobian(rgb, depth, cam, residuals=True, **kw)
-    assert all(np.isfinite(j).all() for j in jac)
-    ct = np.random.default_rng(14).standard_normal(out.shape)  # (4 channels with a footprint)
-    want = np.array([np.sum(j * ct) for j in jac])
-    got = sliced_defocus_adjoint(res, ct, window=window, min_radius=min_radius)
-    scale = np.array([np.sum(np.abs(j * ct)) for j in jac])
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * max(1.0, scale.max()))
-    if aperture > 0:
-        assert np.abs(want).min() > 1e-3
-    if min_radius == np.inf:
-        def f(p):
-            return sliced_defocus(rgb, depth, cam.replace(focus_distance=p[0],
-                                                          aperture_radius=p[1]), **kw)
-        want_jac = jax.jacfwd(f)(jnp.array([cam.focus_distance, aperture]))
-        np.testing.assert_allclose(np.stack(jac, -1), want_jac, rtol=0, atol=1e-12)
 
 
 def test_reverse_mode_through_the_adjoint_matches_forward_mode():
