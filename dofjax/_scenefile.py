@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import warnings
 import re
 from collections.abc import Mapping
 
@@ -641,7 +642,17 @@ def _mesh(d, where: str, base_dir: str) -> tuple[np.ndarray, np.ndarray, np.ndar
         verts = verts @ _rotation(_vec3(d, "rotate", where)).T
     if "translate" in d:
         verts = verts + _vec3(d, "translate", where)
-    return verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
+    v0, v1, v2 = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
+    # zero-area triangles (repeated or collinear vertices, common in exported meshes) are
+    # never hit: skipped, with their number, so that they cost no BVH nodes or intersections
+    flat = ~(np.linalg.norm(np.cross(v1 - v0, v2 - v0), axis=-1) > 0)
+    if np.all(flat):
+        raise SceneError(where, f"all {len(flat)} triangles are degenerate (zero area)")
+    if np.any(flat):
+        warnings.warn(f"{where}: skipped {int(flat.sum())} of {len(flat)} triangles that are "
+                      "degenerate (zero area)", stacklevel=2)
+        v0, v1, v2 = v0[~flat], v1[~flat], v2[~flat]
+    return v0, v1, v2
 
 
 def _check_form(d, where, forms: tuple[tuple[tuple[str, ...], tuple[str, ...]], ...]) -> int:

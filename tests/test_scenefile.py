@@ -223,6 +223,19 @@ def test_error_inline_mesh():
     assert error_of(doc).startswith("objects[4].vertices[1]: must be a list of 3 numbers")
 
 
+def test_degenerate_mesh_triangles_are_skipped_and_counted():
+    doc = base_doc()
+    doc["objects"].append({"type": "mesh", "material": "red",
+                           "vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0]],
+                           "faces": [[0, 1, 2], [0, 1, 3], [2, 2, 1]]})
+    with pytest.warns(UserWarning, match=r"objects\[4\]: skipped 2 of 3 triangles that are "
+                      r"degenerate \(zero area\)"):
+        scene = scene_from_dict(doc)
+    assert scene.triangles.v0.shape == (1, 3)
+    doc["objects"][4]["faces"] = [[0, 1, 3]]
+    assert error_of(doc) == "objects[4]: all 1 triangles are degenerate (zero area)"
+
+
 def test_error_texture_and_camera_sections():
     doc = base_doc()
     doc["materials"]["red"]["texture"] = "skimage:nope"
