@@ -182,6 +182,24 @@ def _median(x) -> str:
     return f"{np.median(x):.2e}" if x.size else ""
 
 
+# A fit reported ok should lie within this many tile-robust standard errors of the truth.
+OK_WITHIN = 3.0
+
+
+def _calibration(rs: list[dict]) -> list[str]:
+    """Cells: share reported ok, "k/n" of those within OK_WITHIN SE (tiles) in both parameters,
+    and rms(err / SE (tiles)) of d and A over them."""
+    ok = [r for r in rs if r["result"].get("converged", True) and r["result"]["identifiable"]]
+    if not ok:
+        return ["0%", "0/0", "", ""]
+    z = np.array([[r[f"rel_err_{n}"] / r[f"rel_se_tiles_{n}"]
+                   for n in ("focus_distance", "aperture_radius")] for r in ok])
+    z = np.where(np.isnan(z), np.inf, z)  # no standard error: not within any multiple of it
+    within = int(np.sum(np.all(np.abs(z) <= OK_WITHIN, axis=1)))
+    rms = np.sqrt(np.mean(np.square(z), axis=0))
+    return [f"{len(ok) / len(rs):.0%}", f"{within}/{len(ok)}", f"{rms[0]:.2f}", f"{rms[1]:.2f}"]
+
+
 def summarise(rows: list[dict]) -> str:
     """Markdown table of relative errors by scene kind, noise level (Gaussian sigmas binned,
     `_noise_group`) and target method, and a last row of every sample of the identifiable kinds.
@@ -190,7 +208,10 @@ def summarise(rows: list[dict]) -> str:
     standard error s^2 (J^T J)^-1, of its tile-robust one (`FitResult.*_se_tiles`: larger where
     the model misses part of the target, e.g. a lens-sampled one) and of the Cramer-Rao bound at
     the truth (all relative; the CRB only for Gaussian noise), and rms(err) / CRB (1 = as good as
-    any unbiased fit can be).
+    any unbiased fit can be). Then the flags' calibration: the share of fits reported ok
+    (converged and identifiable: what `fit.recover` exits 0 for), how many of those lie within
+    `OK_WITHIN` tile-robust standard errors of the truth in both parameters, and rms(err /
+    SE (tiles)) per parameter over them (1 = the errors are what the SEs say).
     """
     groups = defaultdict(list)
     for r in rows:
@@ -199,7 +220,9 @@ def summarise(rows: list[dict]) -> str:
     for p in ("d", "A"):
         header += [f"{p}: median |err|", f"{p}: p98", f"{p}: median SE",
                    f"{p}: median SE (tiles)", f"{p}: median CRB", f"{p}: rms err / CRB"]
-    header += ["identifiable", "ambiguous", "truth in bounds"]
+    header += ["identifiable", "ambiguous", "truth in bounds", "ok",
+               f"ok within {OK_WITHIN:g} SE (tiles)", "d: rms err/SE (tiles)",
+               "A: rms err/SE (tiles)"]
     table = []
     ident = [r for r in rows if r.get("identifiable_kind", True)]
     items = sorted(groups.items())
@@ -219,6 +242,7 @@ def summarise(rows: list[dict]) -> str:
         cells += [f"{np.mean([r['result']['identifiable'] for r in rs]):.0%}",
                   f"{np.mean([r['result']['ambiguous'] for r in rs]):.0%}",
                   f"{np.mean([r.get('truth_in_bounds', True) for r in rs]):.0%}"]
+        cells += _calibration(rs)
         table.append(cells)
     return format_table(table, header=header)
 

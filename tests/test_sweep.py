@@ -142,3 +142,26 @@ def test_data_gen_guard_band_defaults_to_reference_targets_only():
     assert sharp_margin(ref) == 6 + 2  # ceil(camera.max_coc_px) + 2
     with pytest.raises(ValueError, match="config.target.margin"):
         load_config({**CONFIG, "target": {"margin": -1}})
+
+
+def test_summary_reports_how_often_an_ok_fit_is_within_3_standard_errors():
+    from fit.sweep import summarise
+
+    def row(err_d, se_d, err_a, se_a, identifiable=True, converged=True):
+        r = {"kind": "planes", "noise": "none", "sigma": float("nan"), "method": "reference",
+             "result": {"identifiable": identifiable, "converged": converged,
+                        "ambiguous": False}}
+        for name, e, se in (("focus_distance", err_d, se_d), ("aperture_radius", err_a, se_a)):
+            r.update({f"rel_err_{name}": e, f"rel_se_{name}": se, f"rel_se_tiles_{name}": se,
+                      f"rel_crb_{name}": float("nan")})
+        return r
+
+    rows = [row(0.01, 0.01, -0.02, 0.01),  # within 3 SE: z = 1, -2
+            row(0.05, 0.01, 0.0, 0.01),  # d 5 SE off
+            row(0.01, float("nan"), 0.0, 0.01),  # no SE: never within
+            row(0.5, 0.01, 0.5, 0.01, identifiable=False)]  # flagged: not counted
+    line = next(ln for ln in summarise(rows).splitlines() if "planes" in ln)
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[-4:-2] == ["75%", "1/3"]
+    # rms of z over the ok fits: d (1, 5, inf) -> inf; A (-2, 0, 0) -> sqrt(4 / 3)
+    assert cells[-2] == "inf" and cells[-1] == f"{(4 / 3) ** 0.5:.2f}"
