@@ -19,8 +19,8 @@ from __future__ import annotations
 import json
 import math
 import os
-import warnings
 import re
+import warnings
 from collections.abc import Mapping
 
 import jax.numpy as jnp
