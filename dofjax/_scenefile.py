@@ -586,6 +586,11 @@ def _rotation(degrees: np.ndarray) -> np.ndarray:
     return rz @ ry @ rx
 
 
+def _zero_area(v0, v1, v2):
+    """True for triangles (corners (..., 3)) of zero area: repeated or collinear corners."""
+    return ~(np.linalg.norm(np.cross(v1 - v0, v2 - v0), axis=-1) > 0)
+
+
 def _mesh(d, where: str, base_dir: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if ("file" in d) == ("vertices" in d or "faces" in d):
         raise SceneError(where, "give either file, or vertices and faces (inline), not both")
@@ -645,7 +650,7 @@ def _mesh(d, where: str, base_dir: str) -> tuple[np.ndarray, np.ndarray, np.ndar
     v0, v1, v2 = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
     # zero-area triangles (repeated or collinear vertices, common in exported meshes) are
     # never hit: skipped, with their number, so that they cost no BVH nodes or intersections
-    flat = ~(np.linalg.norm(np.cross(v1 - v0, v2 - v0), axis=-1) > 0)
+    flat = _zero_area(v0, v1, v2)
     if np.all(flat):
         raise SceneError(where, f"all {len(flat)} triangles are degenerate (zero area)")
     if np.any(flat):
@@ -739,7 +744,7 @@ def _object(d, where, base_dir) -> tuple[str, dict]:
         return kind, {"lo": lo, "hi": hi}
     if kind == "triangle":
         v0, v1, v2 = (_vec3(d, k, where) for k in ("v0", "v1", "v2"))
-        if not np.linalg.norm(np.cross(v1 - v0, v2 - v0)) > 0:
+        if _zero_area(v0, v1, v2):
             raise SceneError(where, "degenerate triangle (zero area)")
         return kind, {"v0": v0[None], "v1": v1[None], "v2": v2[None]}
     v0, v1, v2 = _mesh(d, where, base_dir)
