@@ -30,8 +30,8 @@ if _CACHE:
         os.environ.setdefault(name.upper(), str(value))
 
 
-# XLA's CPU compiler has now and then crashed a pytest-xdist worker (SIGSEGV inside
-# `backend_compile_and_load`, a different test each time, passing when re-run). xdist's file
+# XLA's CPU compiler has now and then crashed a pytest-xdist worker (SIGSEGV while compiling,
+# late in a long run; test_fit_rgbd more than once, passing when re-run). xdist's file
 # scheduler re-runs the rest of the crashed file on another worker, the crashed test included,
 # but still counts the crash as a failure; and a test that crashes every time makes it hang.
 # So: the first crash of a test is reported as a re-run (that re-run decides the test's
@@ -58,5 +58,6 @@ def pytest_terminal_summary(terminalreporter):
     if _CRASHES:
         terminalreporter.write_sep("=", "test workers that crashed", yellow=True)
         for nodeid, count in _CRASHES.items():
-            terminalreporter.write_line(
-                f"{nodeid}: crashed its worker {count}x; the re-run is its reported outcome")
+            outcome = ("the re-run is its reported outcome" if count == 1
+                       else "the run was ended")
+            terminalreporter.write_line(f"{nodeid}: crashed its worker {count}x; {outcome}")
