@@ -9,6 +9,7 @@ writing or reading one of its entries from two pytest-xdist workers at once has 
 `DOFJAX_TEST_JAX_CACHE` to a directory to use one anyway (subprocesses inherit it).
 """
 
+import gc
 import os
 
 import jax
@@ -30,12 +31,44 @@ if _CACHE:
         os.environ.setdefault(name.upper(), str(value))
 
 
-# XLA's CPU compiler has now and then crashed a pytest-xdist worker (SIGSEGV while compiling,
-# late in a long run; test_fit_rgbd more than once, passing when re-run). xdist's file
-# scheduler re-runs the rest of the crashed file on another worker, the crashed test included,
-# but still counts the crash as a failure; and a test that crashes every time makes it hang.
-# So: the first crash of a test is reported as a re-run (that re-run decides the test's
-# outcome) and listed at the end; a second crash of the same test ends the session.
+# Every program XLA's CPU backend compiles keeps its machine code in a few memory maps for as
+# long as JAX's caches hold it, and a test worker compiles thousands. Past Linux's per-process
+# limit (vm.max_map_count, 65530 by default) LLVM cannot map the next program's code and the
+# worker dies while compiling ("Unable to allocate section memory", or SIGSEGV). So the caches
+# are cleared after any test that leaves more than half the limit in use.
+def _map_count() -> int | None:
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return sum(1 for _ in f)
+    except OSError:  # not Linux
+        return None
+
+
+def _map_limit() -> int:
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            return int(f.read())
+    except (OSError, ValueError):
+        return 65530
+
+
+_MAP_BUDGET = _map_limit() // 2
+
+
+@pytest.fixture(autouse=True)
+def _release_compiled_programs():
+    yield
+    count = _map_count()
+    if count is not None and count > _MAP_BUDGET:
+        jax.clear_caches()
+        gc.collect()
+
+
+# Should a worker still crash, xdist's file scheduler re-runs the rest of the crashed file on
+# another worker, the crashed test included, but counts the crash as a failure; and a test that
+# crashes every time makes it hang. So: the first crash of a test is reported as a re-run (that
+# re-run decides the test's outcome) and listed at the end; a second crash of the same test
+# ends the session.
 _CRASHES: dict[str, int] = {}
 
 

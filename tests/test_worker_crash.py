@@ -1,6 +1,6 @@
-"""The suite's handling of a crashed pytest-xdist worker (tests/conftest.py): a test that
-crashes its worker once is re-run and reported; one that crashes it every time ends the
-session instead of hanging it."""
+"""How the suite keeps its pytest-xdist workers alive (tests/conftest.py): compiled programs
+are released before a worker runs out of memory maps; a test that crashes its worker once is
+re-run and reported; one that crashes it every time ends the session instead of hanging it."""
 
 import os
 import shutil
@@ -49,3 +49,30 @@ def test_a_crash_every_time_ends_the_session(tmp_path):
     run = _run(tmp_path, always=True)
     assert run.returncode == 1, run.stdout + run.stderr
     assert "test_a.py::test_crashes crashed its test worker twice" in run.stdout + run.stderr
+
+
+_MAPS_TEST = """
+import jax, jax.numpy as jnp
+import conftest
+
+f = jax.jit(jnp.sin)
+
+def test_compiles_with_the_maps_over_budget():
+    f(jnp.ones(3))
+    assert f._cache_size() == 1
+    conftest._MAP_BUDGET = 0  # every process is over it
+
+def test_the_previous_programs_were_released():
+    assert conftest._map_count() > 0
+    assert f._cache_size() == 0
+"""
+
+
+def test_compiled_programs_are_released_past_the_map_budget(tmp_path):
+    shutil.copy(os.path.join(os.path.dirname(__file__), "conftest.py"), tmp_path)
+    (tmp_path / "test_maps.py").write_text(_MAPS_TEST)
+    run = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+         "test_maps.py"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "2 passed" in run.stdout
