@@ -155,9 +155,14 @@ class FitResult(eqx.Module):
             focus_distance=arrays["focus_distance"], aperture_radius=arrays["aperture_radius"]),
             message=self.message[i])
 
+    @property
+    def ok(self) -> Bool[Array, "*b"]:
+        """Converged and identifiable: the fit can be reported (`fit.recover` exits 0)."""
+        return jnp.logical_and(self.converged, self.identifiable)
+
     def as_dict(self) -> dict:
-        """Plain-Python summary (floats, bools, str): for JSON output."""
-        out = {}
+        """Plain-Python summary (floats, bools, str; `ok` included): for JSON output."""
+        out = {"ok": np.asarray(self.ok).tolist()}
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             if f.name == "camera":

@@ -198,7 +198,7 @@ def _run(a: argparse.Namespace) -> int:
                             4.0 * np.abs(np.asarray(fitted) - np.asarray(target))], axis=1)
     dofjax.write_png(prefix + ".png", strip)
     print(f"wrote {prefix}.json and {prefix}.png (target | fitted | 4x |residual|)")
-    if not (bool(result.converged) and bool(result.identifiable)):
+    if not bool(result.ok):
         print("recover: warning: the fit is not trustworthy (" +
               ("not converged" if not bool(result.converged) else "not identifiable") +
               f"): exit status {UNTRUSTED_FIT}", file=sys.stderr)

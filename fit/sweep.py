@@ -189,7 +189,7 @@ OK_WITHIN = 3.0
 def _calibration(rs: list[dict]) -> list[str]:
     """Cells: share reported ok, "k/n" of those within OK_WITHIN SE (tiles) in both parameters,
     and rms(err / SE (tiles)) of d and A over them."""
-    ok = [r for r in rs if r["result"].get("converged", True) and r["result"]["identifiable"]]
+    ok = [r for r in rs if r["result"]["ok"]]
     if not ok:
         return ["0%", "0/0", "", ""]
     z = np.array([[r[f"rel_err_{n}"] / r[f"rel_se_tiles_{n}"]
@@ -209,7 +209,7 @@ def summarise(rows: list[dict]) -> str:
     the model misses part of the target, e.g. a lens-sampled one) and of the Cramer-Rao bound at
     the truth (all relative; the CRB only for Gaussian noise), and rms(err) / CRB (1 = as good as
     any unbiased fit can be). Then the flags' calibration: the share of fits reported ok
-    (converged and identifiable: what `fit.recover` exits 0 for), how many of those lie within
+    (`FitResult.ok`: what `fit.recover` exits 0 for), how many of those lie within
     `OK_WITHIN` tile-robust standard errors of the truth in both parameters, and rms(err /
     SE (tiles)) per parameter over them (1 = the errors are what the SEs say).
     """

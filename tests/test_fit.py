@@ -58,6 +58,7 @@ def test_noise_free_recovery():
     assert abs(float(res.focus_distance) / 1.7 - 1) < 1e-6
     assert abs(float(res.aperture_radius) / 0.08 - 1) < 1e-6
     assert bool(res.converged) and bool(res.identifiable) and not bool(res.ambiguous)
+    assert bool(res.ok) and res.as_dict()["ok"] is True
     assert float(res.camera.focus_distance) == float(res.focus_distance)
     assert res.message == "ok"
 
@@ -208,7 +209,7 @@ def test_single_depth_both_free_not_identifiable():
     depth = jnp.full((N, N), 2.0)
     target = blur_model(rgb, depth, CAM.replace(**TRUE))
     res = fit_focus(target, rgb, depth, CAM, **KW)
-    assert not bool(res.identifiable)
+    assert not bool(res.identifiable) and not bool(res.ok)
     assert "not identifiable" in res.message
     assert float(res.loss) < 1e-12  # it still fits: the valley of (d, A) is exact
 

@@ -150,7 +150,7 @@ def test_summary_reports_how_often_an_ok_fit_is_within_3_standard_errors():
     def row(err_d, se_d, err_a, se_a, identifiable=True, converged=True):
         r = {"kind": "planes", "noise": "none", "sigma": float("nan"), "method": "reference",
              "result": {"identifiable": identifiable, "converged": converged,
-                        "ambiguous": False}}
+                        "ok": identifiable and converged, "ambiguous": False}}
         for name, e, se in (("focus_distance", err_d, se_d), ("aperture_radius", err_a, se_a)):
             r.update({f"rel_err_{name}": e, f"rel_se_{name}": se, f"rel_se_tiles_{name}": se,
                       f"rel_crb_{name}": float("nan")})
