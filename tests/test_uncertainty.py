@@ -208,9 +208,11 @@ def test_sweep_bounds_and_summary():
         return {"kind": kind, "noise": "gaussian 0.01", "method": "defocus", "sigma": 0.01,
                 "rel_err_focus_distance": err, "rel_err_aperture_radius": -err,
                 "rel_se_focus_distance": 1e-3, "rel_se_aperture_radius": 1e-3,
+                "rel_se_tiles_focus_distance": 4e-3, "rel_se_tiles_aperture_radius": 4e-3,
                 "rel_crb_focus_distance": crb, "rel_crb_aperture_radius": crb,
                 "truth": {"aperture_radius": 0.1}, "truth_in_bounds": True,
-                "result": {"identifiable": True, "ambiguous": False}}
+                "result": {"identifiable": True, "converged": True, "ok": True,
+                           "ambiguous": False}}
 
     table = summarise([row("planes", 2e-3, 1e-3), row("planes", -2e-3, 1e-3),
                        row("single_plane", 0.5, np.inf)])
@@ -220,6 +222,7 @@ def test_sweep_bounds_and_summary():
     planes = next(line for line in lines if "| planes" in line)
     cells = [c.strip() for c in planes.split("|")]
     assert cells.count("2.00") == 2  # rms err / CRB for d and A
+    assert cells[-4:-1] == ["2/2", "0.50", "0.50"]  # within 3 SE (tiles); rms err / SE (tiles)
     single = next(line for line in lines if "single_plane" in line)
     assert "inf" not in single  # an infinite bound is left out, not averaged
     assert lines[-1].startswith("| **identifiable kinds** | all ") and "| 3 |" in lines[-1]
