@@ -59,7 +59,8 @@ SKIP_COC = 0.25  # px: below this everywhere, blurring changes nothing visible
 
 
 class DefocusWarning(UserWarning):
-    """A CoC larger than the supported window was clamped."""
+    """Input the defocus handles but that is likely a mistake: a CoC larger than the supported
+    window (clamped to it), negative sharp colour."""
 
 
 @dataclass(frozen=True)
@@ -117,6 +118,19 @@ def _check_depth(name: str, z) -> None:
             )
 
 
+def _warn_negative(name: str, x) -> None:
+    """Radiance is >= 0; negative colour (beyond float rounding) is blurred as it is, but is
+    most likely a mistake upstream (an sRGB decode, an offset, a noisy target as sharp input)."""
+    if _is_concrete(x):
+        a = np.asarray(x)
+        neg = a < -1e-6 * max(1.0, float(np.abs(a).max(initial=0.0)))
+        if neg.any():
+            warnings.warn(
+                f"defocus: {name} has {int(neg.sum())} negative value(s) (min "
+                f"{float(a.min()):.4g}); sharp colour is linear radiance, >= 0. They are blurred "
+                "as they are", DefocusWarning, stacklevel=4)
+
+
 def _check_unit(name: str, x) -> None:
     """A coverage: in [0, 1]."""
     if _is_concrete(x):
@@ -161,6 +175,7 @@ def _validate(rgb, depth, camera, reflection, reflection_depth, layers, mirror=N
             "camera.scaled(s))"
         )
     _check_finite("rgb", rgb)
+    _warn_negative("rgb", rgb)
     _check_depth("depth", depth)
     if (reflection is None) != (reflection_depth is None):
         raise ValueError("defocus: reflection and reflection_depth must be given together")
@@ -175,6 +190,7 @@ def _validate(rgb, depth, camera, reflection, reflection_depth, layers, mirror=N
                 f"depth {depth.shape}"
             )
         _check_finite("reflection", reflection)
+        _warn_negative("reflection", reflection)
         _check_depth("reflection_depth", reflection_depth)
     if mirror is not None:  # (a `Mirror` of arrays: `as_mirror`)
         if (mirror.coverage.shape != (h, w) or mirror.radiance.shape != (h, w, 3)
@@ -186,6 +202,7 @@ def _validate(rgb, depth, camera, reflection, reflection_depth, layers, mirror=N
             )
         _check_finite("mirror.coverage", mirror.coverage)
         _check_finite("mirror.radiance", mirror.radiance)
+        _warn_negative("mirror.radiance", mirror.radiance)
         _check_depth("mirror.depth", mirror.depth)
         _check_unit("mirror.coverage", mirror.coverage)
     if layers is not None:

@@ -2,6 +2,7 @@
 errors."""
 
 import math
+import warnings
 
 import equinox as eqx
 import jax
@@ -129,6 +130,23 @@ def test_window_bucketing_and_clamp_is_reported():
     # clamped to the window: same as an image whose CoC is exactly the window
     ref = defocus(rgb, np.full((n, n), depth_for_coc(2.0, cam)), cam, window=2)
     np.testing.assert_allclose(np.asarray(out), np.asarray(ref), atol=1e-12)
+
+
+def test_negative_sharp_colour_is_blurred_with_a_warning():
+    n = 24
+    cam = camera(n)
+    rgb = np.asarray(smooth_texture(n, 5))
+    depth = np.full((n, n), depth_for_coc(3.5, cam))  # the window-4 program above
+    neg, delta, tiny = rgb.copy(), np.zeros_like(rgb), rgb.copy()
+    neg[3, 4, 1], delta[3, 4, 1], tiny[3, 4, 1] = -0.5, 1.0, -1e-9
+    with pytest.warns(DefocusWarning, match=r"rgb has 1 negative value\(s\) \(min -0\.5\)"):
+        out = defocus(neg, depth, cam)
+    # linear in the colour: the negative value is blurred as it is
+    expected = defocus(rgb, depth, cam) - (rgb[3, 4, 1] + 0.5) * defocus(delta, depth, cam)
+    np.testing.assert_allclose(np.asarray(out), np.asarray(expected), atol=1e-12)
+    with warnings.catch_warnings():  # float rounding below 0 is not a mistake
+        warnings.simplefilter("error")
+        defocus(tiny, depth, cam)
 
 
 def test_sharp_near_object_not_overdrawn_by_blurred_background():
