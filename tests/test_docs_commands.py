@@ -11,12 +11,14 @@ forever: it runs until it prints `ready`, then gets Ctrl-C and must exit cleanly
 """
 
 import os
+import queue
 import re
 import shlex
 import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
@@ -76,16 +78,32 @@ def _environment(bin_dir: str) -> dict:
 
 
 def _serve_until_ready(command: str, cwd: str, env: dict) -> None:
+    """Start a server command, wait (at most 240 s, even if it prints nothing) for "ready", then
+    stop it with Ctrl-C."""
     proc = subprocess.Popen(shlex.split(command) + ["--port", "0"], cwd=cwd, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    lines = []
+    lines: queue.Queue = queue.Queue()
+
+    def read():
+        for line in proc.stdout:
+            lines.put(line)
+        lines.put(None)  # end of output: the process ended
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    seen = []
     deadline = time.monotonic() + 240
     try:
-        for line in proc.stdout:
-            lines.append(line)
-            if "ready" in line or time.monotonic() > deadline:
+        while not any("ready" in line for line in seen):
+            try:
+                line = lines.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
                 break
-        assert any("ready" in line for line in lines), "".join(lines)
+            if line is None:
+                break
+            seen.append(line)
+        assert any("ready" in line for line in seen), (
+            f"{command}: printed no 'ready' (it exited, or 240 s passed):\n" + "".join(seen))
     finally:
         proc.send_signal(signal.SIGINT)
         try:
@@ -95,8 +113,10 @@ def _serve_until_ready(command: str, cwd: str, env: dict) -> None:
             proc.wait()
             raise AssertionError(f"{command}: did not stop on Ctrl-C") from None
         finally:
-            proc.stdout.close()
-    assert code in (0, -signal.SIGINT, 130), "".join(lines)
+            reader.join(10)
+            if not reader.is_alive():
+                proc.stdout.close()
+    assert code in (0, -signal.SIGINT, 130), "".join(seen)
 
 
 @pytest.fixture(scope="module")
