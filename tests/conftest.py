@@ -3,19 +3,13 @@
 Forward accuracy in float32 is tested explicitly where it matters (`dtype` arguments,
 `jnp.float32`).
 
-Most of the suite's time is XLA compilation, and tests in different files, pytest-xdist
-workers and the command-line tools the tests run as subprocesses compile many of the same
-programs. So a run shares JAX's persistent compilation cache in a fresh directory, made when
-the run starts and removed when it ends (every run compiles from cold). The cache is given a
-size limit, which makes JAX lock it while an entry is read or written: two workers compiling
-the same program never read a half-written entry. Set `DOFJAX_TEST_JAX_CACHE` to a directory to
-keep the cache there (kept after the run), or to "" to turn it off.
+JAX's persistent compilation cache is off by default, so every run compiles from cold; set
+`DOFJAX_TEST_JAX_CACHE` to a directory to use one (the command-line tools the tests run
+inherit it).
 """
 
 import gc
 import os
-import shutil
-import tempfile
 
 import jax
 import pytest
@@ -23,27 +17,17 @@ import pytest
 jax.config.update("jax_enable_x64", True)
 
 
-_CACHE = os.environ.get("DOFJAX_TEST_JAX_CACHE")
-_OWN_CACHE = _CACHE is None  # (in the controller: xdist's workers inherit the variable)
-if _OWN_CACHE:
-    _CACHE = tempfile.mkdtemp(prefix="dofjax-test-jax-cache-")
-    os.environ["DOFJAX_TEST_JAX_CACHE"] = _CACHE
+_CACHE = os.environ.get("DOFJAX_TEST_JAX_CACHE", "")
 # the command-line tools the tests run (in this process or as subprocesses) use the same setting
 # instead of their default cache directory
 os.environ["DOFJAX_JAX_CACHE"] = _CACHE
 if _CACHE:
     _settings = {"jax_compilation_cache_dir": _CACHE,
                  "jax_persistent_cache_min_compile_time_secs": 0.2,
-                 "jax_persistent_cache_min_entry_size_bytes": 0,
-                 "jax_compilation_cache_max_size": 16 << 30}  # a limit: entries are locked
+                 "jax_persistent_cache_min_entry_size_bytes": 0}
     for name, value in _settings.items():
         jax.config.update(name, value)
         os.environ.setdefault(name.upper(), str(value))
-
-
-def pytest_unconfigure(config):
-    if _OWN_CACHE:
-        shutil.rmtree(_CACHE, ignore_errors=True)
 
 
 # Every program XLA's CPU backend compiles keeps its machine code in a few memory maps for as
