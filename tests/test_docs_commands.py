@@ -92,9 +92,10 @@ def _serve_until_ready(command: str, cwd: str, env: dict) -> None:
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
     seen = []
+    ready = False
     deadline = time.monotonic() + 240
     try:
-        while not any("ready" in line for line in seen):
+        while not ready:
             try:
                 line = lines.get(timeout=max(0.0, deadline - time.monotonic()))
             except queue.Empty:
@@ -102,12 +103,13 @@ def _serve_until_ready(command: str, cwd: str, env: dict) -> None:
             if line is None:
                 break
             seen.append(line)
-        assert any("ready" in line for line in seen), (
+            ready = "ready" in line
+        assert ready, (
             f"{command}: printed no 'ready' (it exited, or 240 s passed):\n" + "".join(seen))
     finally:
         proc.send_signal(signal.SIGINT)
         try:
-            code = proc.wait(timeout=60)  # (a background compilation on 2 loaded cores)
+            code = proc.wait(timeout=30)
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
@@ -118,7 +120,7 @@ def _serve_until_ready(command: str, cwd: str, env: dict) -> None:
                 proc.stdout.close()
         while not lines.empty():
             seen.append(lines.get() or "")
-    assert code is not None, f"{command}: did not stop within 60 s of Ctrl-C:\n" + "".join(seen)
+    assert code is not None, f"{command}: did not stop within 30 s of Ctrl-C:\n" + "".join(seen)
     assert code in (0, -signal.SIGINT, 130), "".join(seen)
 
 
